@@ -1,0 +1,3 @@
+from crashfuse.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Reading and writing crash data: campaign folders, NHTSA EV5 tests, ISO-MME tests."""
