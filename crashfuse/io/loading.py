@@ -1,0 +1,47 @@
+"""One entry point for "give me the pulses at this path", whatever format the folder holds."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from crashfuse.errors import InputError
+from crashfuse.io.campaign import CONDITIONS, DEFAULT_CFC, prepare_pulse, read_campaign, read_test_folder
+from crashfuse.pulse import Pulse
+
+EXPECTED = (f"expected a campaign folder ({CONDITIONS} + pulses/), an NHTSA EV5 test folder (*.EV5) "
+            "or an ISO-MME test folder (*.mme)")
+
+
+def load_pulses(path: str | os.PathLike, cfc: int | None = DEFAULT_CFC) -> list[Pulse]:
+    """The pulses of a campaign, NHTSA EV5 or ISO-MME folder, in SI from first contact on.
+
+    Parameters
+    ----------
+    path : path-like
+        The folder, or a file in it (``conditions.csv``, ``*.EV5``, ``*.mme``).
+    cfc : int or None
+        SAE J211 channel frequency class applied to raw pulses; None keeps them raw.
+
+    Returns
+    -------
+    list of Pulse
+        One per run, in the campaign's table order (one for a single test folder).
+
+    Raises
+    ------
+    InputError
+        If the path is missing, holds none of the three formats, or its content is bad.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"does not exist; {EXPECTED}", path)
+    folder = path if path.is_dir() else path.parent
+    if path.is_file() and path.name != CONDITIONS and path.suffix.lower() not in (".ev5", ".mme"):
+        raise InputError(f"is a file; {EXPECTED}", path)
+    if (folder / CONDITIONS).is_file():
+        return list(read_campaign(folder, cfc).pulses.values())
+    pulse = read_test_folder(folder)
+    if pulse is None:
+        raise InputError(f"holds none of the known formats; {EXPECTED}", folder)
+    return [prepare_pulse(pulse, cfc)]
