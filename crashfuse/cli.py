@@ -56,6 +56,47 @@ def _iso_score(args) -> int:
     return 0
 
 
+def _world_generate(args) -> int:
+    from crashfuse.world.effects import parse_overrides
+    from crashfuse.world.generate import generate
+    from crashfuse.world.presets import resolve
+
+    design = resolve(args.preset, args.withhold, args.strength, parse_overrides(args.effect_param))
+    folder = generate(args.out, design, seed=args.seed)
+    print(f"wrote {folder} (preset {design.preset}, withheld {list(design.withheld)}, seed {args.seed})")
+    return 0
+
+
+def _world_calibrate(args) -> int:
+    from crashfuse.world.calibrate import report
+
+    print(report(args.nhtsa, refit=not args.check, max_nfev=args.max_evals))
+    return 0
+
+
+def _world_realism(args) -> int:
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.world.realism import report
+
+    print(report(read_campaign(args.campaign)))
+    return 0
+
+
+# The real test sits beside the repository (../shared), never inside it.
+_DEFAULT_NHTSA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "nhtsa", "v10146")
+
+
+def _seed(text: str) -> int:
+    """argparse type: an integer seed >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise InputError(f"expected an integer seed >= 0, got {text!r}", field="--seed") from None
+    if value < 0:
+        raise InputError(f"expected an integer seed >= 0, got {text!r}", field="--seed")
+    return value
+
+
 def _build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="crashfuse", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -72,6 +113,26 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--end-ms", type=float, default=60.0, help="window end in ms, inclusive (default 60)")
     s.add_argument("--json", action="store_true", help="print JSON")
     s.set_defaults(func=_iso_score)
+
+    w = sub.add_parser("world", help="the synthetic crash world (validation only)")
+    wsub = w.add_subparsers(dest="world_command", required=True, parser_class=_Parser)
+    s = wsub.add_parser("generate", help="write a synthetic campaign folder and its world.json answer key")
+    s.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
+    s.add_argument("--seed", type=_seed, default=0, help="seed of the CAE design and the test noise (default 0)")
+    s.add_argument("--preset", default=None, help="paper (default) or withheld (needs --withhold)")
+    s.add_argument("--withhold", default=None, help="effect the tests carry and the CAE does not, or none")
+    s.add_argument("--strength", default="realistic", help="realistic (default) or subtle")
+    s.add_argument("--effect-param", action="append", default=[], metavar="NAME=VALUE",
+                   help="set an effect parameter in SI, e.g. damping.c=2000 (repeatable)")
+    s.set_defaults(func=_world_generate)
+    s = wsub.add_parser("calibrate", help="fit the test simulator to NHTSA 10146 and print the side-by-side table")
+    s.add_argument("nhtsa", nargs="?", default=_DEFAULT_NHTSA, help="NHTSA EV5 folder of test 10146")
+    s.add_argument("--check", action="store_true", help="only compare the committed defaults, no fit")
+    s.add_argument("--max-evals", type=int, default=60, help="simulator evaluations for the fit (default 60)")
+    s.set_defaults(func=_world_calibrate)
+    s = wsub.add_parser("realism", help="CAE-vs-test ISO 18571 and plausibility table of a generated campaign")
+    s.add_argument("campaign", help="campaign folder")
+    s.set_defaults(func=_world_realism)
     return p
 
 
