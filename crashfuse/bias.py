@@ -1,0 +1,726 @@
+"""GMM-GPR bias model: universal kriging per Gaussian-mixture cluster (paper Eq. 16-22).
+
+Pure array code. Inputs ``X`` have shape (n, d) in whatever SI units the caller uses
+(e.g. ``[s m, v0 m/s, w_f kg, w_r kg]``); the bias ``y`` has shape (n,) in m/s^2.
+Both estimators standardise their inputs internally, so nothing here depends on units.
+The equations as implemented, and the paper's slips fixed, are in ``docs/bias-model.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from scipy.linalg import cholesky, lapack, solve_triangular
+from scipy.optimize import minimize
+from scipy.spatial.distance import cdist
+from sklearn.base import BaseEstimator, RegressorMixin
+from sklearn.mixture import GaussianMixture
+from sklearn.preprocessing import StandardScaler
+from sklearn.utils import check_random_state
+from threadpoolctl import ThreadpoolController
+from sklearn.utils.validation import check_array, check_is_fitted, check_X_y
+
+__all__ = ["KrigingGP", "GMMGPBias"]
+
+_TRENDS = ("constant", "linear")
+_CHUNK = 2048  # prediction points per block: bounds the (n_train, chunk) work arrays
+_JITTERS = 10.0 ** np.arange(-12, -3)  # relative jitters tried, in order, for joint draws
+_SEED_MAX = 2**31 - 1
+_FAILED = 1e300  # objective value where K is not numerically positive definite
+
+
+@functools.cache
+def _controller():
+    """The BLAS thread-pool controller (built once: inspecting the libraries costs ~0.3 ms)."""
+    return ThreadpoolController()
+
+
+def _limit_blas(method):
+    """Run an estimator method with ``self.blas_threads`` BLAS threads."""
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        with _controller().limit(limits=self.blas_threads, user_api="blas"):
+            return method(self, *args, **kwargs)
+    return wrapper
+
+
+def _correlation(A, B, theta):
+    """Anisotropic Gaussian correlation ``prod_i exp(-theta_i (a_i - b_i)^2)``.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, d)
+    B : ndarray, shape (m, d)
+    theta : ndarray, shape (d,)
+        Positive correlation parameters (on the standardised inputs).
+
+    Returns
+    -------
+    ndarray, shape (n, m)
+    """
+    w = np.sqrt(theta)
+    C = cdist(A * w, B * w, "sqeuclidean")
+    np.negative(C, out=C)
+    return np.exp(C, out=C)
+
+
+def _independent_columns(Z, tol=1e-8):
+    """Indices of a maximal linearly independent set of ``[1, Z]`` columns (greedy, in order).
+
+    Parameters
+    ----------
+    Z : ndarray, shape (n, d)
+        Standardised inputs.
+
+    Returns
+    -------
+    list of int
+        Columns of ``Z`` kept in the linear trend (the intercept is always kept).
+    """
+    kept, basis = [], np.ones((Z.shape[0], 1))
+    for j in range(Z.shape[1]):
+        trial = np.column_stack([basis, Z[:, j]])
+        s = np.linalg.svd(trial, compute_uv=False)
+        if s[-1] > tol * s[0]:
+            kept.append(j)
+            basis = trial
+    return kept
+
+
+class KrigingGP(RegressorMixin, BaseEstimator):
+    """Universal kriging: a Gaussian process with an explicit GLS trend ``h(x)^T beta``.
+
+    Model (paper Eq. 16-17 with the sign of Eq. 17 fixed): ``f(x) = h(x)^T beta + Z(x)``,
+    ``Cov[Z(x), Z(x')] = sigma^2 prod_i exp(-theta_i (x_i - x'_i)^2)``, and observations
+    ``y = f(x) + eps`` with ``Var[eps] = sigma^2 * nugget``. ``beta`` (GLS) and ``sigma^2``
+    are profiled out of the likelihood; ``log theta`` and ``log nugget`` are found by
+    L-BFGS-B with analytic gradients from several seeded starts.
+
+    Parameters
+    ----------
+    trend : {'constant', 'linear'}
+        ``h(x) = [1]`` (ordinary kriging) or ``[1, x_1, ..., x_d]`` on standardised inputs.
+        Linear columns that are constant or collinear in the training data are dropped.
+    theta_bounds : (float, float)
+        Bounds on every ``theta_i`` for inputs standardised to unit variance; the
+        correlation length ``1/sqrt(theta)`` spans 1/30 to 300 standard deviations by
+        default. The low end lets the fit switch off an input: with a few tests per cluster
+        the test-level inputs (v0, weights) are confounded, and a floor of 1e-3 made
+        held-out errors up to 90x larger in ``benchmarks/bench_bias.py`` data.
+    nugget_bounds : (float, float)
+        Bounds on the noise-to-signal variance ratio. The lower bound keeps the
+        correlation matrix's condition number below about ``n / nugget_min``.
+    n_restarts : int
+        Optimiser starts in addition to the fixed one (theta = 1, nugget = 1e-3), drawn
+        log-uniformly within the bounds from ``random_state``.
+    max_fit_points : int or None
+        At most this many points (a seeded random subset) enter the hyperparameter
+        search; ``None`` uses all. ``beta`` and ``sigma^2`` are then re-profiled on the
+        conditioning set, which costs one Cholesky factorisation.
+    max_condition_points : int or None
+        At most this many points (a seeded random subset, containing the fit subset's
+        points when it is smaller) are conditioned on (subset of data); ``None`` uses all.
+    normalize_y : bool
+        Standardise ``y`` before fitting (numerical only: the profiled likelihood is
+        affine-equivariant in ``y``).
+    blas_threads : int or None
+        BLAS threads inside ``fit``, ``predict`` and draws (``None``: the library default).
+        One thread, because threaded BLAS on these few-hundred-point matrices ran 2-10x
+        slower on the shared 2-core machine (``benchmarks/bench_bias.py``); parallelise
+        folds across processes instead.
+    random_state : int, RandomState or None
+        Seeds the restarts and the subsets.
+
+    Attributes
+    ----------
+    theta_ : ndarray, shape (d,)
+        Correlation parameters on the standardised inputs.
+    nugget_ : float
+        Noise-to-signal variance ratio.
+    sigma2_ : float
+        Process variance in (y units)^2.
+    beta_ : ndarray, shape (p,)
+        Trend coefficients on the standardised inputs, in y units (intercept first).
+    trend_columns_ : list of int
+        Input columns used by a linear trend.
+    scaler_ : StandardScaler
+        Input standardisation fitted in ``fit``.
+    n_condition_ : int
+        Number of points conditioned on.
+    log_marginal_likelihood_value_ : float
+        Concentrated log-likelihood at the optimum, on the hyperparameter-fit subset.
+    """
+
+    def __init__(self, trend="constant", theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0),
+                 n_restarts=2, max_fit_points=300, max_condition_points=None,
+                 normalize_y=True, blas_threads=1, random_state=None):
+        self.trend = trend
+        self.theta_bounds = theta_bounds
+        self.nugget_bounds = nugget_bounds
+        self.n_restarts = n_restarts
+        self.max_fit_points = max_fit_points
+        self.max_condition_points = max_condition_points
+        self.normalize_y = normalize_y
+        self.blas_threads = blas_threads
+        self.random_state = random_state
+
+    # ------------------------------------------------------------------ fitting
+    @_limit_blas
+    def fit(self, X, y):
+        """Fit hyperparameters by maximum likelihood, then condition on the data.
+
+        Parameters
+        ----------
+        X : array_like, shape (n, d)
+        y : array_like, shape (n,)
+            Bias, m/s^2 (any unit; predictions come back in it).
+
+        Returns
+        -------
+        self
+        """
+        X, y = self._check_training_data(X, y)
+        Z = self.scaler_.transform(X)
+        self._y_mean, self._y_std = (y.mean(), y.std()) if self.normalize_y else (0.0, 1.0)
+        u = (y - self._y_mean) / self._y_std
+        rng = check_random_state(self.random_state)
+        i_fit = self._subset(len(u), self.max_fit_points, rng)
+        self._Z_hyp, self._u_hyp = Z[i_fit], u[i_fit]
+        eta = self._optimise(rng)
+        self.theta_, self.nugget_ = np.exp(eta[:-1]), float(np.exp(eta[-1]))
+        i_cond = self._condition_subset(len(u), i_fit, rng)
+        self._condition(Z[i_cond], u[i_cond])
+        return self
+
+    def _check_training_data(self, X, y):
+        """Validate settings and data; fit the scaler and choose the trend columns.
+
+        Returns
+        -------
+        X : ndarray, shape (n, d)
+        y : ndarray, shape (n,)
+        """
+        if self.trend not in _TRENDS:
+            raise ValueError(f"trend must be one of {_TRENDS}, got {self.trend!r}")
+        X, y = check_X_y(X, y, y_numeric=True)
+        self.n_features_in_ = X.shape[1]
+        self.scaler_ = StandardScaler().fit(X)
+        Z = self.scaler_.transform(X)
+        self.trend_columns_ = _independent_columns(Z) if self.trend == "linear" else []
+        n_par = 1 + len(self.trend_columns_)
+        if len(y) < n_par + 2:
+            raise ValueError(f"KrigingGP needs at least {n_par + 2} points for a {self.trend} "
+                             f"trend in {X.shape[1]}-D, got {len(y)}")
+        if np.ptp(y) == 0:
+            raise ValueError(f"KrigingGP: all {len(y)} outputs equal {y[0]!r}; a constant has no "
+                             "process variance to fit")
+        return X, y
+
+    @staticmethod
+    def _subset(n, limit, rng):
+        """Sorted seeded random subset of ``range(n)`` of size ``min(n, limit)``."""
+        if limit is None or n <= limit:
+            return np.arange(n)
+        return np.sort(rng.choice(n, size=int(limit), replace=False))
+
+    def _condition_subset(self, n, i_fit, rng):
+        """Conditioning set: all points, or the fit subset topped up at random to the limit."""
+        limit = self.max_condition_points
+        if limit is None or n <= limit:
+            return np.arange(n)
+        if len(i_fit) >= limit:
+            return np.sort(rng.choice(i_fit, size=int(limit), replace=False))
+        rest = np.setdiff1d(np.arange(n), i_fit)
+        extra = rng.choice(rest, size=int(limit) - len(i_fit), replace=False)
+        return np.sort(np.concatenate([i_fit, extra]))
+
+    def _bounds(self):
+        """Bounds on ``[log theta_1..d, log nugget]``, shape (d + 1, 2)."""
+        d = self.n_features_in_
+        lo = np.r_[np.full(d, np.log(self.theta_bounds[0])), np.log(self.nugget_bounds[0])]
+        hi = np.r_[np.full(d, np.log(self.theta_bounds[1])), np.log(self.nugget_bounds[1])]
+        return np.column_stack([lo, hi])
+
+    def _optimise(self, rng):
+        """Best ``[log theta, log nugget]`` over the fixed start and the random restarts."""
+        bounds = self._bounds()
+        first = np.clip(np.r_[np.zeros(self.n_features_in_), np.log(1e-3)], bounds[:, 0], bounds[:, 1])
+        starts = [first] + [rng.uniform(bounds[:, 0], bounds[:, 1]) for _ in range(self.n_restarts)]
+        best_eta, best_f = None, np.inf
+        for x0 in starts:
+            res = minimize(self._objective, x0, jac=True, method="L-BFGS-B", bounds=bounds)
+            if res.fun < min(best_f, _FAILED):
+                best_eta, best_f = res.x, res.fun
+        if best_eta is None:
+            raise ValueError("KrigingGP: the likelihood could not be evaluated at any start "
+                             "(duplicate inputs with conflicting outputs and a zero nugget?)")
+        self.log_marginal_likelihood_value_ = -best_f
+        return best_eta
+
+    def _objective(self, eta):
+        """Negative concentrated log-likelihood and its gradient, for the optimiser."""
+        ll, grad = self._concentrated(eta, self._Z_hyp, self._u_hyp, gradient=True)
+        if not np.isfinite(ll):
+            return _FAILED, np.zeros_like(eta)
+        return -ll, -grad
+
+    def _design(self, Z):
+        """Trend design matrix ``H``, shape (n, p), on standardised inputs ``Z`` (n, d)."""
+        return np.column_stack([np.ones(len(Z)), Z[:, self.trend_columns_]])
+
+    def _concentrated(self, eta, Z, u, gradient=False):
+        """Concentrated log-likelihood (beta GLS, sigma^2 = r^T K^-1 r / n) and gradient.
+
+        Parameters
+        ----------
+        eta : ndarray, shape (d + 1,)
+            ``[log theta_1..d, log nugget]``.
+        Z : ndarray, shape (n, d)
+            Standardised inputs.
+        u : ndarray, shape (n,)
+            (Normalised) outputs.
+        gradient : bool
+            Also return the gradient with respect to ``eta``.
+
+        Returns
+        -------
+        ll : float
+            ``-n/2 log(2 pi sigma^2) - 1/2 log|K| - n/2``, ``K = R + nugget I``; ``-inf`` if
+            ``K`` is not numerically positive definite.
+        grad : ndarray, shape (d + 1,), only if ``gradient``
+        """
+        n = len(u)
+        theta, nugget = np.exp(eta[:-1]), np.exp(eta[-1])
+        R = _correlation(Z, Z, theta)
+        K = R + nugget * np.eye(n)
+        try:
+            L = cholesky(K, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            return (-np.inf, np.zeros_like(eta)) if gradient else -np.inf
+        alpha, sigma2 = self._gls(L, self._design(Z), u)[1:]
+        ll = -0.5 * n * np.log(2 * np.pi * sigma2) - np.log(np.diag(L)).sum() - 0.5 * n
+        if not gradient:
+            return ll
+        # d ll / d eta_j = 1/2 tr(W dK/d eta_j), W = alpha alpha^T / sigma^2 - K^-1; beta and
+        # sigma^2 are stationary points of the likelihood, so their own derivatives drop out.
+        Kinv, info = lapack.dpotri(L, lower=1)
+        if info != 0:
+            return -np.inf, np.zeros_like(eta)
+        Kinv = np.tril(Kinv) + np.tril(Kinv, -1).T
+        W = np.outer(alpha, alpha) / sigma2 - Kinv
+        A = W * R  # dK/dlog theta_k = -theta_k D2_k * R, elementwise
+        AZ = A @ Z
+        # sum_ij A_ij (z_ik - z_jk)^2 = 2 sum_i z_ik^2 (A 1)_i - 2 z_k^T A z_k for symmetric A
+        quad = (Z**2 * A.sum(axis=1)[:, None]).sum(axis=0) - (Z * AZ).sum(axis=0)
+        grad = np.r_[-theta * quad, 0.5 * nugget * np.trace(W)]
+        return ll, grad
+
+    @staticmethod
+    def _gls(L, H, u):
+        """GLS trend given the Cholesky factor ``L`` of ``K``.
+
+        Returns
+        -------
+        beta : ndarray, shape (p,)
+        alpha : ndarray, shape (n,)
+            ``K^-1 (u - H beta)``.
+        sigma2 : float
+            ``(u - H beta)^T K^-1 (u - H beta) / n``.
+        """
+        Ht = solve_triangular(L, H, lower=True, check_finite=False)
+        ut = solve_triangular(L, u, lower=True, check_finite=False)
+        beta = np.linalg.lstsq(Ht, ut, rcond=None)[0]
+        rt = ut - Ht @ beta
+        alpha = solve_triangular(L, rt, lower=True, trans="T", check_finite=False)
+        return beta, alpha, float(rt @ rt) / len(u)
+
+    def _condition(self, Z, u):
+        """Factorise ``K`` on the conditioning set and store what prediction needs."""
+        K = _correlation(Z, Z, self.theta_)
+        K[np.diag_indices_from(K)] += self.nugget_
+        self._L = cholesky(K, lower=True, overwrite_a=True, check_finite=False)
+        H = self._design(Z)
+        self._beta, self._alpha, self._sigma2 = self._gls(self._L, H, u)
+        self._Ht = solve_triangular(self._L, H, lower=True, check_finite=False)
+        self._LM = cholesky(self._Ht.T @ self._Ht, lower=True, check_finite=False)
+        self._Z_train = Z
+        self.n_condition_ = len(u)
+        self.sigma2_ = self._sigma2 * self._y_std**2
+        self.beta_ = self._beta * self._y_std
+        self.beta_[0] += self._y_mean
+
+    @_limit_blas
+    def log_marginal_likelihood(self, params, eval_gradient=False):
+        """Concentrated log-likelihood on the hyperparameter-fit data.
+
+        Parameters
+        ----------
+        params : array_like, shape (d + 1,)
+            ``[log theta_1..d, log nugget]`` (theta on standardised inputs).
+        eval_gradient : bool
+            Also return the analytic gradient with respect to ``params``.
+
+        Returns
+        -------
+        float, or (float, ndarray of shape (d + 1,))
+            Log-likelihood in normalised-output units (differs from the one in y units by
+            the constant ``-n log(y_std)``).
+        """
+        check_is_fitted(self)
+        return self._concentrated(np.asarray(params, float), self._Z_hyp, self._u_hyp, eval_gradient)
+
+    # --------------------------------------------------------------- prediction
+    def _parts(self, Zs):
+        """Mean (normalised) and the two variance pieces at standardised points ``Zs`` (m, d).
+
+        Returns
+        -------
+        mean : ndarray, shape (m,)
+        V : ndarray, shape (n, m)
+            ``L^-1 r(x)``.
+        W : ndarray, shape (p, m)
+            ``L_M^-1 u(x)``, ``u = h(x) - H^T K^-1 r(x)``, ``L_M L_M^T = H^T K^-1 H``.
+        """
+        r = _correlation(self._Z_train, Zs, self.theta_)
+        mean = self._design(Zs) @ self._beta + r.T @ self._alpha
+        V = solve_triangular(self._L, r, lower=True, check_finite=False)
+        U = self._design(Zs).T - self._Ht.T @ V
+        W = solve_triangular(self._LM, U, lower=True, check_finite=False)
+        return mean, V, W
+
+    @_limit_blas
+    def predict(self, X, return_std=False, include_noise=False):
+        """Predictive mean, and optionally the standard deviation (Eq. 19-20 corrected).
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+        return_std : bool
+            Also return ``sigma^2 [1 - r^T K^-1 r + u^T (H^T K^-1 H)^-1 u]`` as a std.
+        include_noise : bool
+            Add the noise variance ``sigma^2 * nugget`` (a new observation, not the latent
+            bias function).
+
+        Returns
+        -------
+        mean : ndarray, shape (m,)
+        std : ndarray, shape (m,), only if ``return_std``
+        """
+        check_is_fitted(self)
+        Zs = self.scaler_.transform(check_array(X))
+        means, stds = [], []
+        for start in range(0, len(Zs), _CHUNK):
+            mean, V, W = self._parts(Zs[start:start + _CHUNK])
+            means.append(mean)
+            if return_std:
+                var = 1.0 - (V**2).sum(axis=0) + (W**2).sum(axis=0) + include_noise * self.nugget_
+                stds.append(np.sqrt(np.clip(var * self._sigma2, 0.0, None)))
+        mean = np.concatenate(means) * self._y_std + self._y_mean if means else np.empty(0)
+        if not return_std:
+            return mean
+        return mean, (np.concatenate(stds) if stds else np.empty(0)) * self._y_std
+
+    @_limit_blas
+    def predict_cov(self, X):
+        """Joint predictive mean and covariance of the latent function (no nugget).
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+
+        Returns
+        -------
+        mean : ndarray, shape (m,)
+        cov : ndarray, shape (m, m)
+            ``sigma^2 [R** - r^T K^-1 r + U^T (H^T K^-1 H)^-1 U]``, including the
+            trend-estimation term.
+        """
+        check_is_fitted(self)
+        Zs = self.scaler_.transform(check_array(X))
+        mean, V, W = self._parts(Zs)
+        cov = _correlation(Zs, Zs, self.theta_) - V.T @ V + W.T @ W
+        return mean * self._y_std + self._y_mean, cov * (self._sigma2 * self._y_std**2)
+
+    @_limit_blas
+    def sample_functions(self, X, n_samples=1, random_state=None):
+        """Joint draws of the latent bias function (no nugget) at the points ``X``.
+
+        The covariance includes the trend-estimation term. It is factorised by Cholesky
+        with a diagonal jitter of ``j * mean(diag(cov))``, ``j`` trying 1e-12, 1e-11, ...,
+        1e-4 in turn until the factorisation succeeds (smooth GPs on dense grids are
+        numerically singular); the added standard deviation is at most 1 % of the
+        average predictive one.
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+        n_samples : int
+        random_state : int, RandomState or None
+
+        Returns
+        -------
+        ndarray, shape (n_samples, m)
+        """
+        mean, cov = self.predict_cov(X)
+        Lc = _jittered_cholesky(cov)
+        z = check_random_state(random_state).standard_normal((len(mean), n_samples))
+        return (mean[:, None] + Lc @ z).T
+
+
+def _jittered_cholesky(cov):
+    """Lower Cholesky factor of ``cov + j mean(diag) I`` with the smallest working jitter.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (m, m)
+
+    Returns
+    -------
+    ndarray, shape (m, m)
+    """
+    if cov.size == 0:
+        return cov
+    scale = max(float(np.mean(np.diag(cov))), np.finfo(float).tiny)
+    for j in _JITTERS:
+        try:
+            return cholesky(cov + j * scale * np.eye(len(cov)), lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            continue
+    raise np.linalg.LinAlgError("predictive covariance is not positive semi-definite even with "
+                                f"a jitter of {_JITTERS[-1]:g} x its mean variance")
+
+
+class GMMGPBias(RegressorMixin, BaseEstimator):
+    """The paper's bias model: a Gaussian mixture over the inputs and one KrigingGP per cluster.
+
+    Parameters
+    ----------
+    n_clusters : int
+        Mixture components K.
+    cluster_inputs : sequence of int or None
+        Columns of ``X`` the mixture sees (default all).
+    assignment : {'select', 'blend'}
+        ``'select'``: the GP of the most responsible cluster (paper section 3.2).
+        ``'blend'``: responsibility-weighted mean of the cluster GPs (paper introduction).
+    trend, theta_bounds, nugget_bounds, n_restarts
+        Passed to every cluster's :class:`KrigingGP`.
+    max_fit_points, max_condition_points, normalize_y, blas_threads
+        Passed to every cluster's :class:`KrigingGP` (``blas_threads`` also limits the
+        mixture and the prediction methods here). ``max_*`` apply per cluster.
+    n_init : int
+        GaussianMixture initialisations.
+    reg_covar : float
+        Covariance floor on the standardised inputs (v0 and the weights are constant within
+        a test, so a one-test cluster has zero variance there).
+    min_cluster_points : int or None
+        Clusters with fewer hard-assigned points are merged into the cluster whose mixture
+        mean is nearest (standardised inputs), smallest first. ``None``: three times the
+        number of GP parameters (trend + d theta + nugget + sigma^2).
+    random_state : int, RandomState or None
+        Seeds the mixture and the GPs.
+
+    Attributes
+    ----------
+    scaler_ : StandardScaler
+        Standardisation of the clustering inputs.
+    gmm_ : GaussianMixture
+    gps_ : list of KrigingGP
+        One per surviving cluster.
+    component_to_gp_ : ndarray of int, shape (n_clusters,)
+        Which GP each mixture component's points and responsibility go to.
+    n_points_per_cluster_ : ndarray of int, shape (len(gps_),)
+    labels_ : ndarray of int, shape (n,)
+        GP index of each training point.
+    """
+
+    def __init__(self, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
+                 theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0), n_restarts=2,
+                 max_fit_points=300, max_condition_points=None, normalize_y=True, n_init=5,
+                 reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None):
+        self.n_clusters = n_clusters
+        self.cluster_inputs = cluster_inputs
+        self.assignment = assignment
+        self.trend = trend
+        self.theta_bounds = theta_bounds
+        self.nugget_bounds = nugget_bounds
+        self.n_restarts = n_restarts
+        self.max_fit_points = max_fit_points
+        self.max_condition_points = max_condition_points
+        self.normalize_y = normalize_y
+        self.n_init = n_init
+        self.reg_covar = reg_covar
+        self.min_cluster_points = min_cluster_points
+        self.blas_threads = blas_threads
+        self.random_state = random_state
+
+    def _gp(self, seed):
+        """An unfitted cluster GP with this model's settings."""
+        return KrigingGP(trend=self.trend, theta_bounds=self.theta_bounds,
+                         nugget_bounds=self.nugget_bounds, n_restarts=self.n_restarts,
+                         max_fit_points=self.max_fit_points,
+                         max_condition_points=self.max_condition_points,
+                         normalize_y=self.normalize_y, blas_threads=self.blas_threads,
+                         random_state=seed)
+
+    def _min_points(self, d):
+        """Smallest cluster that keeps its own GP."""
+        if self.min_cluster_points is not None:
+            return int(self.min_cluster_points)
+        p = 1 + (d if self.trend == "linear" else 0)
+        return 3 * (p + d + 2)
+
+    @_limit_blas
+    def fit(self, X, y):
+        """Fit scaler and mixture on ``X``, then one KrigingGP per (merged) cluster.
+
+        Parameters
+        ----------
+        X : array_like, shape (n, d)
+        y : array_like, shape (n,)
+            Bias, m/s^2.
+
+        Returns
+        -------
+        self
+        """
+        if self.assignment not in ("select", "blend"):
+            raise ValueError(f"assignment must be 'select' or 'blend', got {self.assignment!r}")
+        X, y = check_X_y(X, y, y_numeric=True)
+        self.n_features_in_ = X.shape[1]
+        need = self._min_points(X.shape[1])
+        if len(y) < max(need, self.n_clusters):
+            raise ValueError(f"GMMGPBias needs at least {max(need, self.n_clusters)} bias points "
+                             f"(min_cluster_points={need}, n_clusters={self.n_clusters}), got {len(y)}")
+        rng = check_random_state(self.random_state)
+        C = self._cluster_view(X, fit=True)
+        self.gmm_ = GaussianMixture(self.n_clusters, covariance_type="full", n_init=self.n_init,
+                                    reg_covar=self.reg_covar,
+                                    random_state=rng.randint(_SEED_MAX)).fit(C)
+        self.component_to_gp_ = self._merge(self.gmm_.predict(C), need)
+        self.labels_ = self.component_to_gp_[self.gmm_.predict(C)]
+        n_gps = self.component_to_gp_.max() + 1
+        self.n_points_per_cluster_ = np.bincount(self.labels_, minlength=n_gps)
+        self.gps_ = [self._gp(rng.randint(_SEED_MAX)).fit(X[self.labels_ == g], y[self.labels_ == g])
+                     for g in range(n_gps)]
+        return self
+
+    def _cluster_view(self, X, fit=False):
+        """Standardised clustering columns of ``X``, shape (n, d_cluster)."""
+        cols = list(range(X.shape[1])) if self.cluster_inputs is None else list(self.cluster_inputs)
+        if fit:
+            self.scaler_ = StandardScaler().fit(X[:, cols])
+        return self.scaler_.transform(X[:, cols])
+
+    def _merge(self, labels, need):
+        """Map mixture components to GPs, merging clusters smaller than ``need`` points.
+
+        Parameters
+        ----------
+        labels : ndarray of int, shape (n,)
+            Hard mixture assignment of the training points.
+        need : int
+
+        Returns
+        -------
+        ndarray of int, shape (n_clusters,)
+            GP index (0..n_gps-1, in component order) of each component.
+        """
+        owner = np.arange(self.n_clusters)
+        means = self.gmm_.means_
+        while True:
+            counts = np.bincount(owner[labels], minlength=self.n_clusters)
+            roots = np.flatnonzero(owner == np.arange(self.n_clusters))  # components owning a GP
+            small = roots[counts[roots] < need]  # includes components with no points at all
+            if len(small) == 0 or len(roots) == 1:
+                break
+            c = small[np.argmin(counts[small])]
+            others = roots[roots != c]
+            owner[owner == c] = others[np.argmin(np.linalg.norm(means[others] - means[c], axis=1))]
+        return np.unique(owner, return_inverse=True)[1]
+
+    def predict_responsibilities(self, X):
+        """Mixture responsibilities summed per GP (merged components add up).
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+
+        Returns
+        -------
+        ndarray, shape (m, len(gps_))
+            Rows sum to one.
+        """
+        check_is_fitted(self)
+        X = check_array(X)
+        resp = self.gmm_.predict_proba(self._cluster_view(X))
+        out = np.zeros((len(X), len(self.gps_)))
+        np.add.at(out.T, self.component_to_gp_, resp.T)
+        return out
+
+    def _weights(self, X):
+        """Per-GP weights of the assignment rule, shape (m, len(gps_))."""
+        resp = self.predict_responsibilities(X)
+        if self.assignment == "blend":
+            return resp
+        return np.eye(len(self.gps_))[np.argmax(resp, axis=1)]
+
+    @_limit_blas
+    def predict(self, X, return_std=False):
+        """Bias prediction by the assignment rule.
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+        return_std : bool
+            Latent-function std: the selected GP's (``select``) or the mixture's
+            ``sqrt(sum_k w_k (s_k^2 + mu_k^2) - mu^2)`` (``blend``).
+
+        Returns
+        -------
+        mean : ndarray, shape (m,)
+        std : ndarray, shape (m,), only if ``return_std``
+        """
+        X = check_array(X)
+        w = self._weights(X)
+        mean, second = np.zeros(len(X)), np.zeros(len(X))
+        for g, gp in enumerate(self.gps_):
+            use = w[:, g] > 0
+            if not use.any():
+                continue
+            mu, sd = gp.predict(X[use], return_std=True)
+            mean[use] += w[use, g] * mu
+            second[use] += w[use, g] * (sd**2 + mu**2)
+        if not return_std:
+            return mean
+        return mean, np.sqrt(np.clip(second - mean**2, 0.0, None))
+
+    @_limit_blas
+    def sample_functions(self, X, n_samples=1, random_state=None):
+        """Joint draws of the bias function at ``X``, combined by the assignment rule.
+
+        Each GP is drawn jointly (no nugget) on the points where its weight is non-zero;
+        ``select`` takes the selected GP's draw at each point, ``blend`` the
+        responsibility-weighted sum of the independent per-GP draws (whose spread is
+        ``sqrt(sum_k w_k^2 s_k^2)``, narrower than the mixture std of ``predict``).
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+        n_samples : int
+        random_state : int, RandomState or None
+
+        Returns
+        -------
+        ndarray, shape (n_samples, m)
+        """
+        X = check_array(X)
+        w = self._weights(X)
+        rng = check_random_state(random_state)
+        out = np.zeros((n_samples, len(X)))
+        for g, gp in enumerate(self.gps_):
+            use = w[:, g] > 0
+            seed = rng.randint(_SEED_MAX)  # drawn for every GP so seeds don't depend on X
+            if use.any():
+                out[:, use] += w[use, g] * gp.sample_functions(X[use], n_samples, seed)
+        return out

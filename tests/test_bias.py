@@ -1,0 +1,357 @@
+"""Tests for crashfuse.bias: kriging checked against independent derivations and sklearn."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import approx_fprime
+from sklearn.base import clone
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import RBF, ConstantKernel, DotProduct, WhiteKernel
+
+from crashfuse.bias import GMMGPBias, KrigingGP
+
+
+def _oracle_loglik(eta, Z, u, trend):
+    """Concentrated log-likelihood written directly from Eq. 18 with dense solves.
+
+    Independent of the estimator's Cholesky/GLS code: beta = (H'K^-1H)^-1 H'K^-1 u,
+    sigma^2 = r'K^-1 r / n, ll = -n/2 log(2 pi sigma^2) - 1/2 log|K| - n/2.
+    """
+    n, d = Z.shape
+    theta, nugget = np.exp(eta[:d]), np.exp(eta[d])
+    diff2 = (Z[:, None, :] - Z[None, :, :]) ** 2
+    K = np.exp(-(diff2 * theta).sum(-1)) + nugget * np.eye(n)
+    H = np.ones((n, 1)) if trend == "constant" else np.column_stack([np.ones(n), Z])
+    Kinv_H, Kinv_u = np.linalg.solve(K, H), np.linalg.solve(K, u)
+    beta = np.linalg.solve(H.T @ Kinv_H, H.T @ Kinv_u)
+    r = u - H @ beta
+    sigma2 = r @ np.linalg.solve(K, r) / n
+    return -0.5 * n * np.log(2 * np.pi * sigma2) - 0.5 * np.linalg.slogdet(K)[1] - 0.5 * n
+
+
+def _standardised(gp, X, y):
+    """The (Z, u) the estimator's likelihood sees (no subsampling at these sizes)."""
+    Z = gp.scaler_.transform(X)
+    return Z, (y - y.mean()) / y.std()
+
+
+@pytest.fixture(scope="module")
+def noisy_2d():
+    rng = np.random.default_rng(1)
+    X = rng.uniform(-2, 2, (40, 2))
+    y = np.sin(1.5 * X[:, 0]) + 0.4 * X[:, 1] + 0.05 * rng.standard_normal(40)
+    return X, y
+
+
+# ------------------------------------------------------------------- KrigingGP
+def test_recovers_known_function_noise_free():
+    X = np.linspace(0, 6, 25)[:, None]
+    gp = KrigingGP(random_state=0).fit(X, np.sin(X[:, 0]))
+    Xt = np.linspace(0.1, 5.9, 97)[:, None]
+    mean, std = gp.predict(Xt, return_std=True)
+    assert np.max(np.abs(mean - np.sin(Xt[:, 0]))) < 1e-4
+    assert gp.nugget_ < 1e-5
+    assert np.all(std < 1e-3)
+
+
+def test_recovers_known_function_noisy():
+    rng = np.random.default_rng(2)
+    noise = 0.1
+    X = rng.uniform(0, 6, (150, 1))
+    y = np.sin(X[:, 0]) + noise * rng.standard_normal(150)
+    gp = KrigingGP(random_state=0).fit(X, y)
+    Xt = np.linspace(0.2, 5.8, 50)[:, None]
+    mean = gp.predict(Xt)
+    assert np.max(np.abs(mean - np.sin(Xt[:, 0]))) < 0.1  # noise averaged over ~25 neighbours
+    # the estimated noise variance sigma^2 * nugget recovers the true one within 30 %
+    assert np.sqrt(gp.sigma2_ * gp.nugget_) == pytest.approx(noise, rel=0.3)
+
+
+@pytest.mark.parametrize("trend", ["constant", "linear"])
+def test_loglik_matches_dense_oracle(noisy_2d, trend):
+    X, y = noisy_2d
+    gp = KrigingGP(trend=trend, random_state=0).fit(X, y)
+    Z, u = _standardised(gp, X, y)
+    for eta in ([0.0, 0.0, -3.0], [-2.0, 1.0, -6.0], [1.5, -1.0, -1.0]):
+        assert gp.log_marginal_likelihood(eta) == pytest.approx(_oracle_loglik(np.array(eta), Z, u, trend), abs=1e-7)
+
+
+@pytest.mark.parametrize("trend", ["constant", "linear"])
+def test_analytic_gradient_matches_finite_differences(noisy_2d, trend):
+    X, y = noisy_2d
+    gp = KrigingGP(trend=trend, random_state=0).fit(X, y)
+    for eta in (np.array([0.3, -1.0, -4.0]), np.array([-1.5, 0.5, -1.0])):
+        _, grad = gp.log_marginal_likelihood(eta, eval_gradient=True)
+        fd = approx_fprime(eta, lambda e: _oracle_loglik(e, *_standardised(gp, X, y), trend), 1e-6)
+        np.testing.assert_allclose(grad, fd, rtol=1e-4, atol=1e-4)
+
+
+def test_mle_matches_brute_force_scan_1d():
+    rng = np.random.default_rng(3)
+    X = rng.uniform(0, 5, (30, 1))
+    y = np.cos(1.3 * X[:, 0]) + 0.05 * rng.standard_normal(30)
+    gp = KrigingGP(random_state=0).fit(X, y)
+    Z, u = _standardised(gp, X, y)
+    lt, ln = np.linspace(-4, 4, 81), np.linspace(-12, 1, 53)
+    scan = np.array([[_oracle_loglik(np.array([a, b]), Z, u, "constant") for b in ln] for a in lt])
+    i, j = np.unravel_index(np.argmax(scan), scan.shape)
+    assert gp.log_marginal_likelihood_value_ >= scan.max() - 1e-6
+    assert abs(np.log(gp.theta_[0]) - lt[i]) <= lt[1] - lt[0]
+    assert abs(np.log(gp.nugget_) - ln[j]) <= 2 * (ln[1] - ln[0])
+
+
+def test_mle_matches_brute_force_scan_2d(noisy_2d):
+    X, y = noisy_2d
+    gp = KrigingGP(trend="linear", random_state=0).fit(X, y)
+    Z, u = _standardised(gp, X, y)
+    # inside the bounds: theta2 sits on its lower bound (the trend already has x2)
+    lo = np.log(gp.theta_bounds[0])
+    g1, g2, gn = np.linspace(lo, 3, 33), np.linspace(lo, 1, 33), np.linspace(-9, -1, 17)
+    best, arg = -np.inf, None
+    for a in g1:
+        for b in g2:
+            for c in gn:
+                val = _oracle_loglik(np.array([a, b, c]), Z, u, "linear")
+                if val > best:
+                    best, arg = val, (a, b, c)
+    assert gp.log_marginal_likelihood_value_ >= best - 1e-6
+    eta = np.r_[np.log(gp.theta_), np.log(gp.nugget_)]
+    steps = np.array([g1[1] - g1[0], g2[1] - g2[0], gn[1] - gn[0]])
+    assert np.all(np.abs(eta - np.array(arg)) <= 2 * steps)  # correlated ridge: two grid steps
+
+
+@pytest.mark.parametrize("trend", ["constant", "linear"])
+def test_predictive_variance_matches_bordered_kriging_system(noisy_2d, trend):
+    """BLUP with unknown beta from the Lagrangian system [[K, H], [H', 0]] [w; l] = [r; h]."""
+    X, y = noisy_2d
+    gp = KrigingGP(trend=trend, normalize_y=False, random_state=0).fit(X[:12], y[:12])
+    Z = gp.scaler_.transform(X[:12])
+    Xs = np.array([[0.1, 0.2], [1.9, -1.9], [4.0, 4.0]])
+    Zs = gp.scaler_.transform(Xs)
+    n = len(Z)
+    K = np.exp(-(((Z[:, None] - Z[None]) ** 2) * gp.theta_).sum(-1)) + gp.nugget_ * np.eye(n)
+    r = np.exp(-(((Z[:, None] - Zs[None]) ** 2) * gp.theta_).sum(-1))
+    H = np.ones((n, 1)) if trend == "constant" else np.column_stack([np.ones(n), Z])
+    h = np.ones((1, 3)) if trend == "constant" else np.vstack([np.ones(3), Zs.T])
+    p = H.shape[1]
+    A = np.block([[K, H], [H.T, np.zeros((p, p))]])
+    rhs = np.vstack([r, h])
+    sol = np.linalg.solve(A, rhs)
+    mean = sol[:n].T @ y[:12]
+    var = gp.sigma2_ * (1.0 - np.einsum("ij,ij->j", rhs, sol))
+    m, s = gp.predict(Xs, return_std=True)
+    np.testing.assert_allclose(m, mean, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(s, np.sqrt(var), rtol=1e-6)
+
+
+def test_gls_form_matches_bayesian_form_as_prior_broadens(noisy_2d):
+    """sklearn GPR with a linear kernel (prior beta ~ N(0, B I)) tends to the GLS kriging form."""
+    X, y = noisy_2d
+    gp = KrigingGP(trend="linear", normalize_y=False, random_state=0).fit(X, y)
+    Z = gp.scaler_.transform(X)
+    Zs = gp.scaler_.transform(np.array([[0.0, 0.0], [1.5, -1.0], [3.5, 3.0], [8.0, -6.0]]))
+    m_k, s_k = gp.predict(gp.scaler_.inverse_transform(Zs), return_std=True, include_noise=True)
+    errors = []
+    for B in (1e0, 1e2, 1e4):
+        kernel = (ConstantKernel(gp.sigma2_, "fixed") * RBF(1 / np.sqrt(2 * gp.theta_), "fixed")
+                  + ConstantKernel(B * gp.sigma2_, "fixed") * DotProduct(1.0, "fixed")
+                  + WhiteKernel(gp.sigma2_ * gp.nugget_, "fixed"))
+        sk = GaussianProcessRegressor(kernel, alpha=0.0, optimizer=None).fit(Z, y)
+        m_b, s_b = sk.predict(Zs, return_std=True)  # sklearn's std includes the WhiteKernel
+        errors.append(max(np.max(np.abs(m_b - m_k) / s_k), np.max(np.abs(s_b / s_k - 1))))
+    # the gap closes like 1/B (measured: 6e-2, 7e-4, 7e-6) and is tiny at B = 1e4
+    assert errors[0] > 30 * errors[1] > 900 * errors[2]
+    assert errors[2] < 5e-5
+
+
+@pytest.mark.parametrize("trend", ["constant", "linear"])
+def test_function_draws_have_predicted_mean_and_width(noisy_2d, trend):
+    X, y = noisy_2d
+    gp = KrigingGP(trend=trend, random_state=0).fit(X, y)
+    grid = np.column_stack([np.linspace(-3, 3, 60), np.full(60, 0.5)])  # 1-D line, leaves the data
+    mean, std = gp.predict(grid, return_std=True)
+    n = 4000
+    draws = gp.sample_functions(grid, n, random_state=7)
+    assert draws.shape == (n, 60)
+    np.testing.assert_allclose(draws.std(axis=0), std, rtol=0.06)  # std error ~1.1 %
+    assert np.all(np.abs(draws.mean(axis=0) - mean) < 5 * std / np.sqrt(n))
+    # joint draws are smooth: neighbouring grid values are strongly correlated
+    cov = gp.predict_cov(grid)[1]
+    emp = np.cov(draws.T)
+    np.testing.assert_allclose(emp[0, 1], cov[0, 1], rtol=0.1, atol=0.06 * std[0] * std[1])
+    np.testing.assert_array_equal(draws, gp.sample_functions(grid, n, random_state=7))
+
+
+def test_reverts_to_trend_with_widening_band_far_from_data(noisy_2d):
+    X, y = noisy_2d
+    gp = KrigingGP(trend="linear", random_state=0).fit(X, y)
+    far = np.column_stack([np.linspace(3, 40, 30), np.zeros(30)])
+    mean, std = gp.predict(far, return_std=True)
+    trend = np.column_stack([np.ones(30), gp.scaler_.transform(far)]) @ gp.beta_
+    np.testing.assert_allclose(mean[-10:], trend[-10:], atol=1e-8 * np.abs(trend).max())
+    assert np.all(np.diff(std) > 0)
+    assert std[-1] > np.sqrt(gp.sigma2_)  # trend uncertainty on top of the process variance
+
+
+def test_constant_trend_far_variance_includes_trend_term():
+    rng = np.random.default_rng(4)
+    X = rng.uniform(0, 1, (20, 1))
+    gp = KrigingGP(random_state=0).fit(X, np.sin(4 * X[:, 0]))
+    mean, std = gp.predict(np.array([[100.0]]), return_std=True)
+    assert mean[0] == pytest.approx(gp.beta_[0], rel=1e-10)
+    assert np.sqrt(gp.sigma2_) < std[0] < np.sqrt(2 * gp.sigma2_)
+
+
+def test_linear_trend_drops_constant_and_collinear_columns():
+    rng = np.random.default_rng(5)
+    s = np.tile(np.linspace(0, 0.6, 30), 2)
+    v0 = np.repeat([10.0, 15.0], 30)
+    X = np.column_stack([s, v0, 2 * v0 + 1, np.full(60, 900.0)])  # col 2 collinear, col 3 constant
+    y = np.sin(5 * s) * v0 / 10 + 0.01 * rng.standard_normal(60)
+    gp = KrigingGP(trend="linear", random_state=0).fit(X, y)
+    assert gp.trend_columns_ == [0, 1]
+    mean, std = gp.predict(X, return_std=True)
+    assert np.all(np.isfinite(mean)) and np.all(np.isfinite(std))
+    assert np.max(np.abs(mean - y)) < 0.05
+
+
+def test_subsample_fit_close_to_exact():
+    rng = np.random.default_rng(6)
+    X = rng.uniform(0, 1, (600, 2))
+    f = lambda A: np.sin(6 * A[:, 0]) * A[:, 1]
+    y = f(X) + 0.02 * rng.standard_normal(600)
+    Xt = rng.uniform(0.05, 0.95, (200, 2))
+    exact = KrigingGP(max_fit_points=None, random_state=0).fit(X, y)
+    sub = KrigingGP(max_fit_points=150, max_condition_points=300, random_state=0).fit(X, y)
+    assert sub.n_condition_ == 300 and exact.n_condition_ == 600
+    rmse = lambda gp: np.sqrt(np.mean((gp.predict(Xt) - f(Xt)) ** 2))
+    assert rmse(exact) < 0.01 and rmse(sub) < 0.01  # noise 0.02; measured 0.0047, 0.0066
+
+
+@pytest.mark.parametrize("bad", [
+    dict(X=np.zeros((2, 1)), y=np.zeros(2)),
+    dict(X=np.array([[0.0], [np.nan], [1.0], [2.0]]), y=np.arange(4.0)),
+    dict(X=np.arange(10.0)[:, None], y=np.full(10, 3.0)),
+])
+def test_bad_input_raises_value_error(bad):
+    with pytest.raises(ValueError):
+        KrigingGP().fit(bad["X"], bad["y"])
+
+
+def test_unknown_trend_raises():
+    with pytest.raises(ValueError, match="trend"):
+        KrigingGP(trend="quadratic").fit(np.arange(10.0)[:, None], np.arange(10.0))
+
+
+def test_estimator_manners():
+    gp = KrigingGP(trend="linear", random_state=3)
+    assert clone(gp).get_params() == gp.get_params()
+    X = np.linspace(0, 1, 15)[:, None]
+    assert gp.fit(X, X[:, 0] ** 2) is gp
+    assert not hasattr(clone(gp), "theta_")
+
+
+# ------------------------------------------------------------------- GMMGPBias
+def _two_regime_data(seed=0):
+    """Bias on a displacement grid for six 'tests': low speeds follow f_lo(s), high f_hi(s)."""
+    rng = np.random.default_rng(seed)
+    rows, ys = [], []
+    for v0 in (8.0, 9.0, 10.0, 15.0, 16.0, 17.0):
+        s = np.linspace(0, 0.5, 40)
+        bias = 20 * np.sin(8 * s) if v0 < 12 else -30 * s + 5 * np.cos(12 * s)
+        rows.append(np.column_stack([s, np.full(40, v0), np.full(40, 1000 + 10 * v0)]))
+        ys.append(bias + 0.2 * rng.standard_normal(40))
+    return np.vstack(rows), np.concatenate(ys)
+
+
+@pytest.fixture(scope="module")
+def two_regimes():
+    X, y = _two_regime_data()
+    model = GMMGPBias(n_clusters=2, cluster_inputs=[1, 2], random_state=0).fit(X, y)
+    return X, y, model
+
+
+def test_gmm_separates_regimes_and_predicts_each(two_regimes):
+    X, y, model = two_regimes
+    low = X[:, 1] < 12
+    assert len(model.gps_) == 2
+    assert len(set(model.labels_[low])) == 1 and len(set(model.labels_[~low])) == 1
+    assert model.labels_[low][0] != model.labels_[~low][0]
+    np.testing.assert_array_equal(np.sort(model.n_points_per_cluster_), [120, 120])
+    s = np.linspace(0.02, 0.48, 20)
+    new_lo = np.column_stack([s, np.full(20, 9.5), np.full(20, 1095.0)])
+    new_hi = np.column_stack([s, np.full(20, 16.5), np.full(20, 1165.0)])
+    assert np.max(np.abs(model.predict(new_lo) - 20 * np.sin(8 * s))) < 1.0
+    assert np.max(np.abs(model.predict(new_hi) - (-30 * s + 5 * np.cos(12 * s)))) < 1.0
+
+
+def test_select_uses_most_responsible_gp(two_regimes):
+    X, _, model = two_regimes
+    resp = model.predict_responsibilities(X)
+    np.testing.assert_allclose(resp.sum(axis=1), 1.0)
+    pick = np.argmax(resp, axis=1)
+    mean, std = model.predict(X, return_std=True)
+    for g, gp in enumerate(model.gps_):
+        m, s = gp.predict(X[pick == g], return_std=True)
+        np.testing.assert_allclose(mean[pick == g], m)
+        np.testing.assert_allclose(std[pick == g], s, rtol=1e-10)
+
+
+def test_blend_is_mixture_of_cluster_predictions(two_regimes):
+    X, y, select = two_regimes
+    blend = clone(select).set_params(assignment="blend").fit(X, y)
+    Xb = np.column_stack([np.full(5, 0.2), np.linspace(8, 17, 5), 1000 + 10 * np.linspace(8, 17, 5)])
+    w = blend.predict_responsibilities(Xb)
+    mus, sds = zip(*(gp.predict(Xb, return_std=True) for gp in blend.gps_))
+    mus, sds = np.array(mus).T, np.array(sds).T
+    mean, std = blend.predict(Xb, return_std=True)
+    np.testing.assert_allclose(mean, (w * mus).sum(axis=1))
+    # law of total variance for the mixture
+    np.testing.assert_allclose(std**2, (w * sds**2).sum(1) + (w * (mus - mean[:, None]) ** 2).sum(1))
+    # on the training tests responsibilities are one-hot, so blend equals select there
+    np.testing.assert_allclose(blend.predict(X), select.predict(X), atol=1e-6 * np.abs(y).max())
+
+
+def test_mixture_draws_have_predicted_width(two_regimes):
+    _, _, model = two_regimes
+    grid = np.column_stack([np.linspace(0, 0.7, 50), np.full(50, 12.0), np.full(50, 1120.0)])
+    mean, std = model.predict(grid, return_std=True)
+    draws = model.sample_functions(grid, 3000, random_state=1)
+    np.testing.assert_allclose(draws.std(axis=0), std, rtol=0.07)
+    assert np.all(np.abs(draws.mean(axis=0) - mean) < 5 * std / np.sqrt(3000))
+    np.testing.assert_array_equal(draws, model.sample_functions(grid, 3000, random_state=1))
+
+
+def test_small_clusters_merge_not_nan():
+    X, y = _two_regime_data(1)
+    model = GMMGPBias(n_clusters=3, cluster_inputs=[1], min_cluster_points=150, random_state=0).fit(X, y)
+    assert len(model.gps_) < 3
+    assert model.n_points_per_cluster_.sum() == len(y)
+    assert np.all(model.n_points_per_cluster_ >= 150) or len(model.gps_) == 1
+    mean, std = model.predict(X, return_std=True)
+    assert np.all(np.isfinite(mean)) and np.all(np.isfinite(std))
+    assert model.predict_responsibilities(X).shape == (len(y), len(model.gps_))
+
+
+@pytest.mark.filterwarnings("ignore:Number of distinct clusters")  # k-means init, expected here
+def test_components_without_points_get_no_gp():
+    X, y = _two_regime_data()
+    # eight components on six distinct v0 values: some components own no training point
+    model = GMMGPBias(n_clusters=8, cluster_inputs=[1], min_cluster_points=1, random_state=0).fit(X, y)
+    assert len(model.gps_) <= 6
+    assert np.all(model.n_points_per_cluster_ > 0)
+    assert np.all(np.isfinite(model.predict(X)))
+
+
+def test_too_few_points_raises():
+    X, y = _two_regime_data()
+    with pytest.raises(ValueError, match="at least"):
+        GMMGPBias(n_clusters=2, trend="linear").fit(X[:20], y[:20])
+
+
+def test_same_seed_same_model():
+    X, y = _two_regime_data()
+    a = GMMGPBias(n_clusters=2, random_state=11).fit(X, y)
+    b = GMMGPBias(n_clusters=2, random_state=11).fit(X, y)
+    np.testing.assert_array_equal(a.predict(X), b.predict(X))
