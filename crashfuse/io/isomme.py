@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from crashfuse.errors import InputError
-from crashfuse.io.nhtsa import combine_x_channels
+from crashfuse.io.channels import combine_x_channels
 from crashfuse.pulse import Pulse
 from crashfuse.units import G0
 
