@@ -217,7 +217,7 @@ def test_write_refuses_non_empty_folder_unless_overwrite(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("x")
-    with pytest.raises(InputError, match="non-empty") as err:
+    with pytest.raises(InputError, match="not empty") as err:
         write_campaign(small_campaign(), out)
     assert err.value.file == os.fspath(out)
     write_campaign(small_campaign(), out, overwrite=True)

@@ -587,7 +587,7 @@ def write_campaign(campaign: Campaign, folder: str | os.PathLike, speed_unit: st
     if folder.exists() and not folder.is_dir():
         raise InputError("expected a folder, found a file", folder)
     if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise InputError("refusing to overwrite a non-empty folder (pass overwrite=True)", folder)
+        raise InputError("expected an empty or new output folder; this one is not empty and is left as it is", folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
     try:
