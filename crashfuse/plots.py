@@ -1,0 +1,238 @@
+"""Figures of an evaluation: per-fold pulse predictions and the ISO score summary.
+
+The fold figure follows the paper's Figs. 5-8: deceleration in g against time in ms (0-100 ms),
+the physical test, the CAE run and the bias-corrected mean with its 95 % band. The summary figure
+shows the ISO score of every held-out test for CAE and each cluster count K, one panel per input
+mode. Figures are built on a bare ``matplotlib.figure.Figure`` (Agg canvas, no pyplot state) and
+saved as PNG without a Software/time stamp, atomically, so equal inputs give equal bytes.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from crashfuse.errors import InputError
+from crashfuse.io.atomic import atomic_path
+from crashfuse.pulse import Pulse
+from crashfuse.report import BASELINE, INPUTS, SCORES, model_order, natural_key, read_iso_table, table2
+from crashfuse.units import G0, MS
+
+PREDICTION_COLUMNS = ("time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g")
+T_END = 0.1  # s, the span of the paper's figures
+DPI = 120
+# Colour-blind safe (Okabe-Ito): test black, CAE vermillion, corrected blue.
+COLORS = {"test": "black", "cae": "#D55E00", "mean": "#0072B2", "band": "#56B4E9"}
+MODEL_COLORS = ["#7F7F7F", "#56B4E9", "#009E73", "#E69F00", "#CC79A7", "#0072B2", "#F0E442"]
+
+
+def read_prediction_csv(path: str | os.PathLike) -> pd.DataFrame:
+    """Read and validate a fold's prediction CSV.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        CSV with at least ``time_s, decel_g, decel_lo_g, decel_hi_g, cae_decel_g`` (deceleration
+        in g, positive while slowing); other columns are kept.
+
+    Returns
+    -------
+    pandas.DataFrame, shape (n_samples, >= 5)
+        The table, with the five columns as floats.
+
+    Raises
+    ------
+    InputError
+        Missing file or column, non-finite value, time not strictly increasing, or a band with
+        ``decel_lo_g > decel_hi_g``.
+    """
+    path = Path(path)
+    try:
+        frame = pd.read_csv(path)
+    except FileNotFoundError:
+        raise InputError("expected a prediction CSV, but the file does not exist", path) from None
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
+        raise InputError(f"expected a CSV table: {err}", path) from None
+    missing = [c for c in PREDICTION_COLUMNS if c not in frame.columns]
+    if missing:
+        raise InputError(f"expected the columns {list(PREDICTION_COLUMNS)}, missing {missing}", path, missing[0])
+    if len(frame) < 2:
+        raise InputError(f"expected at least 2 samples, got {len(frame)}", path, "time_s")
+    for col in PREDICTION_COLUMNS:
+        values = pd.to_numeric(frame[col], errors="coerce").to_numpy(float)
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raise InputError(f"expected finite numbers, got {frame[col].iloc[bad[0]]!r} in data row {bad[0] + 1}",
+                             path, col)
+        frame[col] = values
+    step = np.diff(frame["time_s"].to_numpy())
+    if np.any(step <= 0):
+        raise InputError(f"expected strictly increasing time, not at data row {int(np.argmin(step > 0)) + 2}",
+                         path, "time_s")
+    crossed = np.flatnonzero(frame["decel_lo_g"].to_numpy() > frame["decel_hi_g"].to_numpy())
+    if crossed.size:
+        raise InputError(f"expected decel_lo_g <= decel_hi_g, not at data row {crossed[0] + 1}", path, "decel_lo_g")
+    return frame
+
+
+def fold_figure(test: Pulse, prediction: pd.DataFrame, title: str | None = None) -> Figure:
+    """Test vs CAE vs corrected mean with its 95 % band, in the manner of the paper's Figs. 5-8.
+
+    Parameters
+    ----------
+    test : Pulse
+        The held-out physical test (SI, decel in m/s^2).
+    prediction : pandas.DataFrame, shape (n_samples, >= 5)
+        A validated prediction table (see `read_prediction_csv`), deceleration in g.
+    title : str, optional
+        Figure title, e.g. ``'T03, paper inputs, K = 2'``.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        One axes: deceleration in g against time in ms over 0-100 ms.
+    """
+    fig = _figure((6.4, 4.4))
+    ax = fig.add_subplot()
+    _draw_fold(ax, test, prediction)
+    # Below the axes: pulses fill the plot area at every time.
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=4, frameon=False)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def panels_figure(test: Pulse, predictions: Mapping[str, pd.DataFrame], title: str | None = None) -> Figure:
+    """One held-out test predicted by several models side by side (e.g. K = 1, 2, 3), as the paper's Figs. 5-8.
+
+    Parameters
+    ----------
+    test : Pulse
+        The held-out physical test (SI).
+    predictions : mapping of str to pandas.DataFrame
+        Panel label (e.g. ``'K = 2'``) -> validated prediction table, in panel order.
+    title : str, optional
+        Figure title.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        One axes per prediction on a shared deceleration axis, one legend below.
+    """
+    if not predictions:
+        raise ValueError("expected at least one prediction")
+    fig = _figure((3.6 * len(predictions) + 0.6, 4.0))
+    axes = fig.subplots(1, len(predictions), sharey=True, squeeze=False)[0]
+    for ax, (label, prediction) in zip(axes, predictions.items()):
+        _draw_fold(ax, test, prediction)
+        ax.set_title(label, fontsize="medium")
+    for ax in axes[1:]:
+        ax.set_ylabel("")
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="lower center", ncol=4, frameon=False)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    return fig
+
+
+def _draw_fold(ax, test: Pulse, prediction: pd.DataFrame) -> None:
+    t_ms = prediction["time_s"].to_numpy() / MS
+    ax.fill_between(t_ms, prediction["decel_lo_g"], prediction["decel_hi_g"], color=COLORS["band"], alpha=0.35,
+                    linewidth=0, label="95 % band")
+    keep = test.time <= T_END + 0.5 * test.dt
+    ax.plot(test.time[keep] / MS, test.decel[keep] / G0, color=COLORS["test"], lw=1.4, label="test")
+    ax.plot(t_ms, prediction["cae_decel_g"], color=COLORS["cae"], lw=1.2, ls="--", label="CAE")
+    ax.plot(t_ms, prediction["decel_g"], color=COLORS["mean"], lw=1.6, label="corrected mean")
+    ax.set_xlim(0, T_END / MS)
+    ax.axhline(0, color="0.6", lw=0.6)
+    ax.set_xlabel("time (ms)")
+    ax.set_ylabel("deceleration (g)")
+    ax.grid(alpha=0.3)
+
+
+def iso_summary_figure(frame: pd.DataFrame, window: str = "0-60", score: str = "overall") -> Figure:
+    """Grouped bars of the ISO score by held-out test and model, one panel per input mode.
+
+    Parameters
+    ----------
+    frame : pandas.DataFrame
+        A validated ISO table (see `crashfuse.report.read_iso_table`).
+    window : str
+        The ``window_ms`` label to show.
+    score : str
+        The score column to show.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        One row of bars per input mode present; bars CAE, K1, K2 ... per test; the legend gives
+        each model's mean over the tests.
+    """
+    if score not in SCORES:
+        raise ValueError(f"expected a score in {SCORES}, got {score!r}")
+    rows = frame[frame["window_ms"] == window]
+    if rows.empty:
+        raise ValueError(f"no rows with window_ms {window!r}")
+    modes = [m for m in INPUTS if (rows["inputs"] == m).any()]
+    tests = sorted(rows["test_id"].unique(), key=natural_key)
+    models = sorted(rows["model"].unique(), key=model_order)
+    fig = _figure((max(6.4, 0.75 * len(tests) + 2.0), 2.8 * len(modes) + 0.4))
+    axes = fig.subplots(len(modes), 1, squeeze=False, sharex=True)[:, 0]
+    width = 0.8 / len(models)
+    for ax, mode in zip(axes, modes):
+        wide = table2(rows, mode, score)[window].unstack("model").reindex(index=tests, columns=models)
+        for j, model in enumerate(models):
+            values = wide[model].to_numpy(float)
+            label = f"{model} (mean {np.nanmean(values):.3f})" if np.isfinite(values).any() else model
+            ax.bar(np.arange(len(tests)) + (j - (len(models) - 1) / 2) * width, np.nan_to_num(values), width,
+                   color=MODEL_COLORS[j % len(MODEL_COLORS)], label=label,
+                   edgecolor="black" if model == BASELINE else "none", linewidth=0.5)
+        ax.set_ylim(0, 1)
+        ax.set_ylabel(f"ISO {score} ({window} ms)")
+        ax.set_title(f"{mode} inputs", fontsize="medium")
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False, fontsize="small")
+    axes[-1].set_xticks(np.arange(len(tests)), tests)
+    axes[-1].set_xlabel("held-out test")
+    fig.tight_layout()
+    return fig
+
+
+def save_png(fig: Figure, path: str | os.PathLike) -> Path:
+    """Save ``fig`` as a PNG atomically, without the Software metadata (no version or time stamp)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=DPI, metadata={"Software": None})
+    return path
+
+
+def plot_fold(test: Pulse, prediction_csv: str | os.PathLike, path: str | os.PathLike,
+              title: str | None = None) -> Path:
+    """Read a prediction CSV and write its `fold_figure` as a PNG at ``path``."""
+    return save_png(fold_figure(test, read_prediction_csv(prediction_csv), title), path)
+
+
+def plot_panels(test: Pulse, prediction_csvs: Mapping[str, str | os.PathLike], path: str | os.PathLike,
+                title: str | None = None) -> Path:
+    """Read prediction CSVs (panel label -> file) and write their `panels_figure` as a PNG at ``path``."""
+    frames = {label: read_prediction_csv(csv) for label, csv in prediction_csvs.items()}
+    return save_png(panels_figure(test, frames, title), path)
+
+
+def plot_iso_summary(iso_table: str | os.PathLike, path: str | os.PathLike, window: str = "0-60",
+                     score: str = "overall") -> Path:
+    """Read ``iso_table.csv`` (or the folder holding it) and write its `iso_summary_figure` as a PNG."""
+    return save_png(iso_summary_figure(read_iso_table(iso_table), window, score), path)
+
+
+def _figure(size: tuple[float, float]) -> Figure:
+    fig = Figure(figsize=size)
+    FigureCanvasAgg(fig)
+    return fig
