@@ -1,0 +1,331 @@
+"""Bijective projection (paper Eq. 11-15): bias data from tests and their CAE curves, per branch.
+
+For one test and the CAE curve at its condition, on one branch (loading in ``x = s``,
+unloading in ``x = u = s_max - s``, see :mod:`crashfuse.domain`):
+
+* scenario 1 - test points inside the CAE branch's range get the CAE interpolated there:
+  ``bias_i = a_test(x_i) - a_cae(x_i)``;
+* scenario 2 - CAE points inside the test branch's range get the test interpolated there:
+  ``bias_j = a_test(x_j) - a_cae(x_j)``;
+
+and the bias data are the union, sorted by ``x``. Both scenarios stay inside the overlap of the
+two branches, so nothing is ever extrapolated: whichever side reaches further, its extra reach
+gives no bias data. (The paper's Eq. 13 writes ``x_d`` for the displacement ``s_d``.) Every
+point carries the TEST's velocity there (interpolated on the test branch), the extra input of
+the ``state`` mode.
+
+The CAE curve of a test is its companion run (``cae_run_id``) or, where there is none or when
+asked, the CAE surrogate's curve at the test's condition (:class:`crashfuse.surrogate.CAECurve`
+either way). After its separation (``u > u_end``) the CAE unloading deceleration is known to be
+0, so the CAE unloading branch covers every ``u`` there; a test still in contact there gives bias
+data equal to its own deceleration.
+
+Each test's branch is thinned to ``n_grid`` points evenly spaced in ``x`` (bias and velocity
+interpolated linearly on the union) so that an exact GP stays affordable; the cost is measured
+in ``docs/method-projection-surrogate.md``. Everything is SI (m, m/s, kg, m/s^2).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Mapping, Protocol, Sequence
+
+import numpy as np
+
+from crashfuse.domain import displacement_branches
+from crashfuse.errors import InputError
+from crashfuse.io.campaign import Campaign
+from crashfuse.pulse import Pulse
+from crashfuse.surrogate import CATEGORIES, CAECurve, CAESurrogate
+
+INPUTS = ("paper", "state")
+BRANCHES = ("loading", "unloading")
+# Input columns (SI units in the names): branch coordinate, velocity, impact condition.
+X_COL, V_COL, V0_COL, WF_COL, WR_COL = "x_m", "v_mps", "v0_mps", "front_weight_kg", "rear_weight_kg"
+
+
+class Curve(Protocol):
+    """Anything with a strictly increasing coordinate ``x`` (m) and a ``decel`` (m/s^2) on it."""
+
+    x: np.ndarray
+    decel: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class _Samples:
+    """A CAE branch as plain arrays: coordinate x (m, strictly increasing), decel (m/s^2)."""
+
+    x: np.ndarray
+    decel: np.ndarray
+
+
+def project_branch(test_branch, cae_branch: Curve) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eq. 11-15 on one branch pair: the union of both scenarios inside their overlap.
+
+    Parameters
+    ----------
+    test_branch : Branch
+        The test's branch (``x``, ``decel``, ``velocity``; ``x`` strictly increasing, m).
+    cae_branch : Branch or any object with ``x`` and ``decel``
+        The CAE branch on the same coordinate.
+
+    Returns
+    -------
+    x : ndarray, shape (n,)
+        Branch coordinates in m, sorted, unique, within both branches' ranges.
+    v : ndarray, shape (n,)
+        The test's velocity at ``x`` in m/s.
+    bias : ndarray, shape (n,)
+        ``a_test(x) - a_cae(x)`` in m/s^2. All three are empty if the branches do not overlap.
+    """
+    tx, ta, tv = (np.asarray(a, dtype=float) for a in (test_branch.x, test_branch.decel, test_branch.velocity))
+    cx, ca = np.asarray(cae_branch.x, dtype=float), np.asarray(cae_branch.decel, dtype=float)
+    lo, hi = max(tx[0], cx[0]), min(tx[-1], cx[-1])
+    x1 = tx[(tx >= lo) & (tx <= hi)]  # scenario 1: test points inside the CAE range
+    x2 = cx[(cx >= lo) & (cx <= hi)]  # scenario 2: CAE points inside the test range
+    x = np.unique(np.concatenate([x1, x2]))
+    bias = np.interp(x, tx, ta) - np.interp(x, cx, ca)
+    return x, np.interp(x, tx, tv), bias
+
+
+def thin(x: np.ndarray, v: np.ndarray, bias: np.ndarray, n_grid: int | None):
+    """Resample projected data to ``n_grid`` points evenly spaced in ``x`` (linear interpolation).
+
+    Parameters
+    ----------
+    x, v, bias : ndarray, shape (n,)
+        From :func:`project_branch` (``x`` sorted).
+    n_grid : int or None
+        Points to keep; None, or ``n <= n_grid``, keeps the data as they are.
+
+    Returns
+    -------
+    x, v, bias : ndarray, shape (min(n, n_grid),)
+    """
+    if n_grid is None or x.size <= n_grid:
+        return x, v, bias
+    grid = np.linspace(x[0], x[-1], int(n_grid))
+    return grid, np.interp(grid, x, v), np.interp(grid, x, bias)
+
+
+@dataclasses.dataclass(frozen=True)
+class BranchData:
+    """Bias training data of one branch.
+
+    Attributes
+    ----------
+    X : ndarray, shape (n, p)
+        Inputs in SI, columns named by ``columns``.
+    y : ndarray, shape (n,)
+        Bias ``a_test - a_cae`` in m/s^2.
+    groups : ndarray of str, shape (n,)
+        The test run_id each row came from.
+    columns : tuple of str, length p
+        ``x_m`` (s on loading, u on unloading), ``v_mps`` (``state`` mode only), ``v0_mps``,
+        ``front_weight_kg``, ``rear_weight_kg``, then one-hot ``powertrain=<level>`` /
+        ``drive=<level>`` columns with ``extra_inputs``.
+    """
+
+    X: np.ndarray
+    y: np.ndarray
+    groups: np.ndarray
+    columns: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class BiasData:
+    """Bias training data per branch, from one fold's training tests.
+
+    Attributes
+    ----------
+    loading, unloading : BranchData
+    inputs : {"paper", "state"}
+    categories : dict of str to list of str
+        Levels behind the one-hot columns (the first level of each is the dropped baseline).
+    missing : dict of str to str
+        ``"<test_id>/<branch>"`` -> why that test gave no data on that branch (e.g. it never
+        stopped, or its CAE curve has no unloading branch).
+    """
+
+    loading: BranchData
+    unloading: BranchData
+    inputs: str
+    categories: dict[str, list[str]]
+    missing: dict[str, str]
+
+    def branch(self, name: str) -> BranchData:
+        """The data of branch ``name`` ('loading' or 'unloading')."""
+        if name not in BRANCHES:
+            raise InputError(f"expected a branch in {BRANCHES}, got {name!r}", field="branch")
+        return getattr(self, name)
+
+
+def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper", extra_inputs: bool = False,
+              n_grid: int | None = 200, surrogate: CAESurrogate | None = None, use_companion: bool = True,
+              cae_curves: Mapping[str, CAECurve] | None = None) -> BiasData:
+    """Bias training data from the given tests (a fold's training tests only: no leakage).
+
+    Parameters
+    ----------
+    campaign : Campaign
+    test_ids : sequence of str
+        Tests to learn from.
+    inputs : {"paper", "state"}
+        ``paper``: x = [x_branch, v0, w_f, w_r]; ``state``: x = [x_branch, v, v0, w_f, w_r].
+    extra_inputs : bool
+        Append one-hot powertrain and drive (levels taken from the whole campaign, first dropped).
+    n_grid : int or None
+        Points per test per branch after thinning (None: the full projected union).
+    surrogate : CAESurrogate, optional
+        Fitted surrogate: gives the CAE curve of tests without a companion (or of every test
+        with ``use_companion=False``), and the unloading branch of companions that never stop.
+    use_companion : bool
+        Use the companion CAE run where a test names one.
+    cae_curves : mapping of str to CAECurve, optional
+        Explicit CAE curves by test run_id; they take precedence over both sources above.
+
+    Returns
+    -------
+    BiasData
+
+    Raises
+    ------
+    InputError
+        Unknown ``inputs``, a run that is not a test, or a test with no CAE curve (no companion
+        and no surrogate).
+    """
+    if inputs not in INPUTS:
+        raise InputError(f"expected one of {INPUTS}, got {inputs!r}", field="inputs")
+    if len(test_ids) == 0:
+        raise InputError("expected at least one training test, got none", campaign.root, "test_ids")
+    if n_grid is not None and not (isinstance(n_grid, (int, np.integer)) and n_grid >= 2):
+        raise InputError(f"expected None or an integer >= 2 points per branch, got {n_grid!r}", field="n_grid")
+    categories = _categories(campaign) if extra_inputs else {}
+    columns = bias_columns(inputs, categories)
+    parts = {b: [] for b in BRANCHES}
+    missing = {}
+    for test_id in test_ids:
+        test = _test_pulse(campaign, test_id)
+        curve = _cae_curve(campaign, test, surrogate, use_companion, cae_curves or {})
+        for name, rows in _test_rows(test, curve, n_grid, missing).items():
+            x, v, bias = rows
+            X = bias_inputs(columns, x, v, test.v0, test.front_weight, test.rear_weight,
+                            test.meta.get("powertrain"), test.meta.get("drive"))
+            parts[name].append((X, bias, np.full(x.size, test_id, dtype=object)))
+    data = {b: _stack(parts[b], columns) for b in BRANCHES}
+    return BiasData(data["loading"], data["unloading"], inputs, categories, missing)
+
+
+def bias_columns(inputs: str, categories: Mapping[str, Sequence[str]] | None = None) -> tuple[str, ...]:
+    """Input column names for ``inputs`` ('paper' | 'state') and one-hot ``categories``."""
+    if inputs not in INPUTS:
+        raise InputError(f"expected one of {INPUTS}, got {inputs!r}", field="inputs")
+    base = (X_COL, V_COL) if inputs == "state" else (X_COL,)
+    one_hot = tuple(f"{c}={lv}" for c, levels in (categories or {}).items() for lv in levels[1:])
+    return (*base, V0_COL, WF_COL, WR_COL, *one_hot)
+
+
+def bias_inputs(columns: Sequence[str], x, v, v0: float, front_weight: float, rear_weight: float,
+                powertrain: str | None = None, drive: str | None = None) -> np.ndarray:
+    """Bias-model inputs in ``columns`` order, for training rows or a rollout state.
+
+    Parameters
+    ----------
+    columns : sequence of str
+        From :func:`bias_columns` (or ``BranchData.columns``).
+    x : array_like, shape (m,)
+        Branch coordinate in m (s on loading, u on unloading).
+    v : array_like, shape (m,) or None
+        Velocity in m/s (needed for a ``v_mps`` column).
+    v0, front_weight, rear_weight : float
+        Condition in m/s and kg.
+    powertrain, drive : str, optional
+        Needed for one-hot columns.
+
+    Returns
+    -------
+    ndarray, shape (m, len(columns))
+    """
+    x = np.asarray(x, dtype=float)
+    labels = {"powertrain": powertrain, "drive": drive}
+    out = np.empty((x.size, len(columns)))
+    for j, col in enumerate(columns):
+        if col == X_COL:
+            out[:, j] = x
+        elif col == V_COL:
+            if v is None:
+                raise InputError("the state inputs need the velocity", field=V_COL)
+            out[:, j] = np.broadcast_to(np.asarray(v, dtype=float), x.shape)
+        elif col in (V0_COL, WF_COL, WR_COL):
+            out[:, j] = {V0_COL: v0, WF_COL: front_weight, WR_COL: rear_weight}[col]
+        else:
+            name, _, level = col.partition("=")
+            if name not in labels or labels[name] is None:
+                raise InputError(f"the bias inputs include one-hot {name}; expected a {name} label", field=name)
+            out[:, j] = float(str(labels[name]) == level)
+    return out
+
+
+# ------------------------------------------------------------------------------- helpers
+def _categories(campaign: Campaign) -> dict[str, list[str]]:
+    """Levels of powertrain and drive over the whole campaign (inputs, not outcomes: no leakage)."""
+    return {c: sorted({str(v) for v in campaign.conditions[c]}) for c in CATEGORIES}
+
+
+def _test_pulse(campaign: Campaign, test_id: str) -> Pulse:
+    pulse = campaign.pulses.get(test_id)
+    if pulse is None:
+        raise InputError(f"no run {test_id!r} in the campaign", campaign.root, "test_ids")
+    if pulse.source != "test":
+        raise InputError(f"run {test_id!r} is a {pulse.source} run; bias data come from tests", campaign.root,
+                         "test_ids")
+    return pulse
+
+
+def _cae_curve(campaign: Campaign, test: Pulse, surrogate, use_companion: bool, explicit) -> CAECurve:
+    """The CAE curve a test is compared with: explicit, companion (if allowed), or surrogate."""
+    if test.run_id in explicit:
+        return explicit[test.run_id]
+    companion = campaign.companion(test.run_id) if use_companion else None
+    stand_in = None
+    if surrogate is not None:
+        stand_in = surrogate.curve(test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
+                                   test.meta.get("drive"))
+    if companion is not None:
+        return CAECurve.from_pulse(companion, unloading_from=stand_in)
+    if stand_in is None:
+        why = "names no companion CAE run (cae_run_id)" if use_companion else "use_companion is off"
+        raise InputError(f"test {test.run_id} {why} and no CAE surrogate was given; fit a CAESurrogate on the "
+                         f"campaign's CAE runs and pass it as surrogate=", campaign.root, "cae_run_id")
+    return stand_in
+
+
+def _test_rows(test: Pulse, curve: CAECurve, n_grid, missing: dict) -> dict[str, tuple]:
+    """Projected and thinned (x, v, bias) per branch for one test; records branches with no data."""
+    br = displacement_branches(test)
+    out = {"loading": project_branch(br.loading, _Samples(curve.s, curve.a_loading))}
+    if br.unloading is None:
+        missing[f"{test.run_id}/unloading"] = "the test never reaches zero velocity in its record"
+    elif curve.u is None:
+        missing[f"{test.run_id}/unloading"] = f"its CAE curve ({curve.run_id}) has no unloading branch"
+    else:
+        out["unloading"] = project_branch(br.unloading, _cae_unloading(curve, br.unloading.x[-1]))
+    for name in list(out):
+        if out[name][0].size < 2:
+            missing[f"{test.run_id}/{name}"] = "the test and CAE branches do not overlap"
+            del out[name]
+    return {name: thin(*rows, n_grid) for name, rows in out.items()}
+
+
+def _cae_unloading(curve: CAECurve, reach: float) -> _Samples:
+    """The CAE unloading branch, extended with decel 0 up to ``reach`` (m) after its separation."""
+    if reach <= curve.u_end:
+        return _Samples(curve.u, curve.a_unloading)
+    return _Samples(np.append(curve.u, reach), np.append(curve.unloading(curve.u), 0.0))
+
+
+def _stack(parts: list, columns: tuple[str, ...]) -> BranchData:
+    if not parts:
+        return BranchData(np.empty((0, len(columns))), np.empty(0), np.empty(0, dtype=object), columns)
+    X, y, g = (np.concatenate(p) for p in zip(*parts))
+    return BranchData(X, y, g, columns)

@@ -1,0 +1,151 @@
+"""CAE surrogate: held-out ISO/TS 18571 accuracy, curves taken from runs, energy balance, bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sklearn.base import clone
+from sklearn.exceptions import NotFittedError
+
+from crashfuse.domain import displacement_branches
+from crashfuse.errors import InputError
+from crashfuse.filters import filter_pulse
+from crashfuse.io.nhtsa import read_nhtsa
+from crashfuse.iso18571 import iso_score
+from crashfuse.surrogate import CAECurve, CAESurrogate, holdout_accuracy
+from crashfuse.world.generate import build
+from crashfuse.world.presets import resolve
+
+NHTSA = Path(__file__).resolve().parents[2] / "shared" / "data" / "nhtsa" / "v10146"
+
+
+@pytest.fixture(scope="module")
+def world():
+    return build(resolve("paper"), seed=1, n_cae=200)[0]
+
+
+@pytest.fixture(scope="module")
+def fitted(world):
+    return CAESurrogate(n_restarts=0, random_state=0).fit(world)
+
+
+def test_held_out_cae_runs_score_iso_above_095(world):
+    result = holdout_accuracy(world, CAESurrogate(n_restarts=0, random_state=0), fraction=0.1, random_state=0)
+    assert len(result["run_ids"]) == 21
+    assert not set(result["run_ids"]) & set(result["surrogate"].run_ids_)
+    assert result["mean"] >= 0.95
+    assert result["min"] >= 0.85
+
+
+def test_from_pulse_rollout_reproduces_the_cae_run(world):
+    # A run that stops, rebounds and separates inside its record: the zero-bias rollout of its own
+    # curve gives the pulse back through maximum crush and the spring-back.
+    curves = (CAECurve.from_pulse(world.pulses[r]) for r in world.cae)
+    curve = next(c for c in curves if c.unloading_origin == "run")
+    run = world.pulses[curve.run_id]
+    traj = curve.rollout(run.dt, run.time.size - 1)
+    assert traj.s_max[0] == pytest.approx(displacement_branches(run).s_max, abs=1e-9)
+    contact = traj.branch[0] < 2
+    np.testing.assert_allclose(traj.decel[0, contact], run.decel[contact], atol=1e-6)
+    assert iso_score(run.time, run.decel, traj.time, traj.decel[0], 0.0, 0.1)["overall"] > 0.99
+
+
+@pytest.mark.skipif(not NHTSA.is_dir(), reason="shared NHTSA data absent")
+def test_from_pulse_reproduces_the_real_nhtsa_test_to_separation():
+    pulse = filter_pulse(read_nhtsa(NHTSA), 60).after_contact()
+    curve = CAECurve.from_pulse(pulse)
+    assert curve.u_end is not None and 0 < curve.u_end < curve.s_max
+    traj = curve.rollout(pulse.dt, pulse.time.size - 1)
+    br = displacement_branches(pulse)
+    assert traj.s_max[0] == pytest.approx(br.s_max, abs=1e-9)
+    # Up to separation the rollout revisits the test's own samples; after it the decel is 0.
+    t_sep = traj.time[np.argmax(traj.branch[0] == 2)]
+    assert t_sep > br.t_stop
+    before = traj.time < t_sep
+    np.testing.assert_allclose(traj.decel[0, before], pulse.decel[before], atol=1e-6)
+    assert np.all(traj.decel[0, ~before] == 0.0)
+
+
+def test_loading_beyond_the_data_continues_with_the_last_stiffness(world):
+    curve = CAECurve.from_pulse(world.pulses["CT08"])
+    end = curve.s[-1]
+    assert not curve.extrapolated(end) and curve.extrapolated(end + 1e-3)
+    tail = curve.s >= 0.95 * end
+    slope = np.polyfit(curve.s[tail], curve.a_loading[tail], 1)[0]
+    assert curve.loading(end + 0.01) == pytest.approx(curve.a_loading[-1] + 0.01 * slope)
+    assert curve.unloading(curve.u_end + 1e-3) == 0.0
+
+
+def test_a_run_that_never_stops_has_no_unloading_unless_given_one(world, fitted):
+    run = next(world.pulses[r] for r in world.cae if not displacement_branches(world.pulses[r]).stopped)
+    alone = CAECurve.from_pulse(run)
+    with pytest.raises(InputError, match="never reaches zero velocity"):
+        alone.unloading(0.01)
+    # Its maximum crush lies beyond the record: the energy balance on the continued curve.
+    assert alone.s_max > alone.s[-1] and alone.extrapolated(alone.s_max)
+    stand_in = fitted.curve(run.v0, run.front_weight, run.rear_weight, run.meta["powertrain"], run.meta["drive"])
+    mixed = CAECurve.from_pulse(run, unloading_from=stand_in)
+    np.testing.assert_array_equal(mixed.unloading(stand_in.u), stand_in.unloading(stand_in.u))
+    np.testing.assert_array_equal(mixed.a_loading, alone.a_loading)
+
+
+def test_a_run_cut_before_separation_is_continued_or_stood_in_for(world, fitted):
+    run = world.pulses["CT03"]  # stops about 5 ms before the record ends, still in contact
+    br = displacement_branches(run)
+    assert br.stopped and br.unloading.decel[-1] > 0.5 * br.unloading.decel[0]
+    own = CAECurve.from_pulse(run)
+    assert own.unloading_origin == "continued"
+    assert own.u_end > br.unloading.x[-1] and own.unloading(own.u_end) == 0.0
+    np.testing.assert_allclose(own.unloading(br.unloading.x), br.unloading.decel)
+    stand_in = fitted.curve(run.v0, run.front_weight, run.rear_weight, run.meta["powertrain"], run.meta["drive"])
+    assert CAECurve.from_pulse(run, unloading_from=stand_in).unloading_origin == "stand-in"
+    assert CAECurve.from_pulse(world.pulses["CT08"], unloading_from=stand_in).unloading_origin == "run"
+
+
+def test_surrogate_s_max_is_where_its_rollout_stops(world, fitted):
+    for test_id in ("T01", "T06", "T09"):
+        p = world.pulses[test_id]
+        curve = fitted.curve(p.v0, p.front_weight, p.rear_weight, p.meta["powertrain"], p.meta["drive"])
+        traj = curve.rollout(p.dt, p.time.size - 1)
+        assert traj.s_max[0] == pytest.approx(curve.s_max, abs=2e-3)
+
+
+def test_surrogate_matches_the_companions_at_the_test_conditions(world, fitted):
+    # The companions CT01..CT11 are in the fit, so this checks fidelity at training points.
+    scores = []
+    for test_id in world.tests:
+        p, cae = world.pulses[test_id], world.companion(test_id)
+        curve = fitted.curve(p.v0, p.front_weight, p.rear_weight, p.meta["powertrain"], p.meta["drive"])
+        traj = curve.rollout(cae.dt, cae.time.size - 1)
+        scores.append(iso_score(cae.time, cae.decel, traj.time, traj.decel[0])["overall"])
+    assert min(scores) > 0.93
+
+
+def test_estimator_manners_and_seeding(world):
+    est = CAESurrogate(n_components=4, n_unload_components=3, n_restarts=0, random_state=7)
+    assert clone(est).get_params() == est.get_params()
+    with pytest.raises(NotFittedError):
+        est.curve(10.0, 900.0, 700.0)
+    runs = [world.pulses[r] for r in world.cae[:60]]
+    a = clone(est).fit(runs).curve(10.0, 950.0, 720.0, "Type I", "FWD")
+    b = clone(est).fit(runs).curve(10.0, 950.0, 720.0, "Type I", "FWD")
+    np.testing.assert_array_equal(a.a_loading, b.a_loading)
+    assert a.u_end == b.u_end
+
+
+def test_bad_input(world, fitted):
+    with pytest.raises(InputError, match="at least 10 CAE runs"):
+        CAESurrogate().fit([world.pulses[r] for r in world.cae[:5]])
+    with pytest.raises(InputError, match="CAE runs only"):
+        CAESurrogate().fit([world.pulses["T01"], *(world.pulses[r] for r in world.cae[:20])])
+    assert set(fitted.categories_) == {"powertrain", "drive"}
+    with pytest.raises(InputError, match="powertrain"):
+        fitted.curve(10.0, 900.0, 700.0, None, "FWD")
+    with pytest.raises(InputError, match="drive"):
+        fitted.curve(10.0, 900.0, 700.0, "Type I", "RWD")
+    with pytest.raises(InputError, match="v0"):
+        fitted.curve(-1.0, 900.0, 700.0, "Type I", "FWD")
+    with pytest.raises(InputError, match="fraction"):
+        holdout_accuracy(world, fitted, fraction=0.0)
