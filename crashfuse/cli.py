@@ -82,6 +82,88 @@ def _world_realism(args) -> int:
     return 0
 
 
+def _fit(args) -> int:
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.model import fit_model
+
+    campaign = read_campaign(args.campaign)
+    model = fit_model(campaign, args.k, inputs=args.inputs, holdout=args.holdout, assignment=args.assignment,
+                      extra_inputs=args.extra_inputs, n_grid=args.n_grid, use_companion=args.use_companion,
+                      random_state=args.seed)
+    model.save(args.out)
+    gps = {b: 0 if est is None else len(est.gps_) for b, est in model.bias_.items()}
+    print(f"wrote {args.out}: K={args.k} {args.inputs} inputs, {len(model.training_tests)} training tests, "
+          f"GPs per branch {gps}, campaign {model.campaign_hash[:12]}")
+    return 0
+
+
+def _predict(args) -> int:
+    from crashfuse.io.atomic import atomic_path
+    from crashfuse.model import load_model
+    from crashfuse.rollout import predict
+    from crashfuse.units import LB, MPH
+
+    model = load_model(args.model)
+    pred = predict(model, args.v0_mph * MPH, args.front_weight_lb * LB, args.rear_weight_lb * LB,
+                   args.powertrain, args.drive, n_samples=args.samples, random_state=args.seed)
+    with atomic_path(args.out) as tmp:
+        pred.frame().to_csv(tmp, index=False, float_format="%.6g")
+    if pred.extrapolation["any"]:
+        where = [k for k, v in pred.extrapolation.items() if v and k != "any"]
+        print(f"crashfuse: warning: outside the bias data ({', '.join(where)}): the band is wide there",
+              file=sys.stderr)
+    if args.json:
+        _print_json({"metrics": pred.metrics, "extrapolation": pred.extrapolation, "n_samples": pred.n_samples,
+                     "campaign_hash": model.campaign_hash, "settings": model.settings})
+    return 0
+
+
+def _prepare(args) -> int:
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.model import save_surrogate
+    from crashfuse.surrogate import CAESurrogate
+
+    campaign = read_campaign(args.campaign)
+    save_surrogate(CAESurrogate(random_state=args.seed).fit(campaign), args.out)
+    print(f"wrote {args.out}: CAE surrogate of the {len(campaign.cae)} CAE runs, campaign "
+          f"{campaign.content_hash()[:12]}")
+    return 0
+
+
+def _evaluate(args) -> int:
+    from crashfuse.evaluate import evaluate
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.model import load_surrogate
+
+    surrogate = load_surrogate(args.surrogate) if args.surrogate else None
+    result = evaluate(read_campaign(args.campaign), ks=args.k, inputs=args.inputs, out=args.out,
+                      n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
+                      holdout=args.holdout, use_companion=args.use_companion, assignment=args.assignment,
+                      extra_inputs=args.extra_inputs, n_grid=args.n_grid)
+    summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
+    print(summary.mean().round(3).to_string())
+    return 0
+
+
+def _positive(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise InputError(f"expected an integer >= 1, got {text!r}", field="arguments")
+    return value
+
+
+def _add_method_options(s) -> None:
+    s.add_argument("--seed", type=_seed, default=0, help="seed of the surrogate, bias models and draws (default 0)")
+    s.add_argument("--assignment", choices=("select", "blend"), default="select",
+                   help="cluster rule of the bias model (default select)")
+    s.add_argument("--use-companion", action="store_true",
+                   help="predict a test's condition with its companion CAE run instead of the surrogate")
+
+
 # The real test sits beside the repository (../shared), never inside it.
 _DEFAULT_NHTSA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "nhtsa", "v10146")
 
@@ -133,6 +215,54 @@ def _build_parser() -> argparse.ArgumentParser:
     s = wsub.add_parser("realism", help="CAE-vs-test ISO 18571 and plausibility table of a generated campaign")
     s.add_argument("campaign", help="campaign folder")
     s.set_defaults(func=_world_realism)
+
+    s = sub.add_parser("fit", help="fit the CAE surrogate and the per-branch bias models; write a model file")
+    s.add_argument("campaign", help="campaign folder")
+    s.add_argument("--k", type=_positive, required=True, help="mixture components K of the bias models")
+    s.add_argument("--inputs", choices=("paper", "state"), default="paper",
+                   help="bias inputs: paper [x, v0, w_f, w_r] or state [x, v, v0, w_f, w_r] (default paper)")
+    s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
+                   help="test to keep out of the bias data (repeatable)")
+    s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
+    s.add_argument("--n-grid", type=_positive, default=200, help="bias points per test per branch (default 200)")
+    _add_method_options(s)
+    s.add_argument("--out", required=True, help="model file to write")
+    s.set_defaults(func=_fit)
+
+    s = sub.add_parser("predict", help="bias-corrected pulse with a 95 %% Monte Carlo band at one condition")
+    s.add_argument("model", help="model file from 'crashfuse fit'")
+    s.add_argument("--v0-mph", type=float, required=True, help="impact speed, mph")
+    s.add_argument("--front-weight-lb", type=float, required=True, help="front axle weight, lb")
+    s.add_argument("--rear-weight-lb", type=float, required=True, help="rear axle weight, lb")
+    s.add_argument("--powertrain", default=None, help="powertrain label (when the model uses it)")
+    s.add_argument("--drive", default=None, help="drive label (when the model uses it)")
+    s.add_argument("--samples", type=_positive, default=1000, help="Monte Carlo samples (default 1000)")
+    s.add_argument("--seed", type=_seed, default=0, help="seed of the draws (default 0)")
+    s.add_argument("--out", required=True, help="prediction CSV to write")
+    s.add_argument("--json", action="store_true", help="print the pulse metrics with bands as JSON")
+    s.set_defaults(func=_predict)
+
+    s = sub.add_parser("evaluate", help="leave-one-test-out ISO/TS 18571 table, predictions and band coverage")
+    s.add_argument("campaign", help="campaign folder")
+    s.add_argument("--k", type=_positive, nargs="+", default=[1, 2, 3], help="mixture sizes (default 1 2 3)")
+    s.add_argument("--inputs", choices=("paper", "state"), nargs="+", default=["paper", "state"],
+                   help="input modes (default both)")
+    s.add_argument("--samples", type=_positive, default=1000, help="Monte Carlo samples per fold (default 1000)")
+    s.add_argument("--jobs", type=_positive, default=2, help="worker processes (default 2)")
+    s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
+                   help="run only the fold holding out this test (repeatable; default every test)")
+    s.add_argument("--surrogate", default=None, help="CAE surrogate file from 'crashfuse prepare' (default: fit it)")
+    s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
+    s.add_argument("--n-grid", type=_positive, default=200, help="bias points per test per branch (default 200)")
+    _add_method_options(s)
+    s.add_argument("--out", required=True, help="output folder")
+    s.set_defaults(func=_evaluate)
+
+    s = sub.add_parser("prepare", help="fit the CAE surrogate once on a campaign's CAE runs (shared by folds)")
+    s.add_argument("campaign", help="campaign folder")
+    s.add_argument("--seed", type=_seed, default=0, help="seed of the surrogate's fit (default 0)")
+    s.add_argument("--out", required=True, help="surrogate file to write")
+    s.set_defaults(func=_prepare)
     return p
 
 

@@ -1,0 +1,303 @@
+"""Leave-one-test-out evaluation: ISO/TS 18571 table, per-fold predictions, band coverage.
+
+For every input mode, every K and every test of the campaign, one fold: the bias models are fitted
+on the other tests only (the CAE surrogate is fitted ONCE on the CAE runs, which contain no test
+data, and shared by every fold), the held-out test's condition is predicted
+(:func:`crashfuse.rollout.predict`) and the Monte Carlo mean is rated against the held-out (CFC 60)
+test over 0-20, 0-40 and 0-60 ms. The ``CAE`` rows rate the test's companion CAE run (the surrogate's
+zero-bias pulse where a test has none). Folds run in parallel processes (joblib/loky).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+from joblib import Parallel, delayed
+
+from crashfuse.dynamics import Trajectory
+from crashfuse.errors import InputError
+from crashfuse.io.atomic import atomic_path
+from crashfuse.io.campaign import Campaign
+from crashfuse.iso18571 import iso_score
+from crashfuse.model import INPUTS, fit_model
+from crashfuse.report import SCORES, FoldRecord, write_fold_json
+from crashfuse.rollout import predict
+from crashfuse.surrogate import CAESurrogate
+from crashfuse.units import G0, MS
+
+WINDOWS_MS = ((0, 20), (0, 40), (0, 60))
+COVERAGE_WINDOW_MS = (0, 60)
+ISO_COLUMNS = ["test_id", "inputs", "model", "window_ms", "overall", "corridor", "phase", "magnitude", "slope"]
+COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "n_points", "extrapolation", "n_gps_loading",
+                    "n_gps_unloading", "cluster_switches", "fit_s", "predict_s"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Evaluation:
+    """Result of :func:`evaluate`.
+
+    Attributes
+    ----------
+    iso_table : DataFrame
+        Columns ``ISO_COLUMNS``; one row per test, input mode, model (CAE, K1, ...) and window.
+    coverage : DataFrame
+        Columns ``COVERAGE_COLUMNS``: per fold, the fraction of held-out test points in 0-60 ms inside
+        the 95 % band, the extrapolation flag, the GPs per branch, how often the selected GP changes
+        along the mean-function rollout, and the fold's fit and predict times (s).
+    predictions : dict of (str, str, str) to DataFrame
+        Per fold ``(inputs, model, test_id)``: the prediction table (:meth:`Prediction.frame`) with
+        the held-out test's deceleration (``test_decel_g``) beside it.
+    records : dict of (str, str, str) to FoldRecord
+        Per fold, its tracking record (``crashfuse.report``, docs/tracking.md).
+    wall_time : float
+        Seconds for the whole evaluation.
+    """
+
+    iso_table: pd.DataFrame
+    coverage: pd.DataFrame
+    predictions: dict
+    records: dict
+    wall_time: float
+
+
+def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.PathLike | None = None,
+             n_samples: int = 1000, random_state: int = 0, n_jobs: int = 2, surrogate: CAESurrogate | None = None,
+             holdout=None, progress: Callable[[str], None] | None = print, **fit_kwargs) -> Evaluation:
+    """Every leave-one-test-out fold for each K in ``ks`` and each input mode.
+
+    Parameters
+    ----------
+    campaign : Campaign
+        Tests (CFC 60 as read) and CAE runs.
+    ks : sequence of int
+        Mixture sizes K.
+    inputs : sequence of {"paper", "state"}
+    out : path, optional
+        Folder for ``iso_table.csv``, ``coverage.csv`` and, per fold, ``<inputs>/K<k>/<test>/`` with
+        ``<test>_prediction.csv`` and ``<test>.fold.json`` (docs/tracking.md); each file atomic.
+    n_samples : int
+        Monte Carlo samples per prediction.
+    random_state : int
+        Seeds the surrogate, every fold's bias models and draws.
+    n_jobs : int
+        Worker processes for the folds.
+    surrogate : CAESurrogate, optional
+        Already fitted on this campaign's CAE runs; fitted here otherwise.
+    holdout : str or sequence of str, optional
+        Run only the folds holding out these tests (default: every test), e.g. one fold per job.
+    progress : callable, optional
+        Receives one line per finished fold.
+    **fit_kwargs
+        Passed to :func:`crashfuse.model.fit_model` (``assignment``, ``extra_inputs``, ``n_grid``,
+        ``use_companion``).
+
+    Returns
+    -------
+    Evaluation
+    """
+    t0 = time.perf_counter()
+    ks, inputs = _check_grid(ks, inputs)
+    tests = _held_out(campaign, holdout)
+    surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
+    folds = [(mode, k, t) for mode in inputs for k in ks for t in tests]
+    say = progress or (lambda line: None)
+    say(f"evaluate: {len(folds)} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
+    jobs = (delayed(_fold)(campaign, surrogate, mode, k, t, n_samples, random_state, fit_kwargs)
+            for mode, k, t in folds)
+    results = []
+    for i, res in enumerate(Parallel(n_jobs=n_jobs, return_as="generator")(jobs), 1):
+        results.append(res)
+        cov = res["coverage"]
+        say(f"[{i}/{len(folds)}] {cov['inputs']} {cov['model']} {cov['test_id']}: "
+            f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
+            f"fit {cov['fit_s']:.1f} s")
+    cae_rows = [row for t in tests for mode in inputs for row in _cae_rows(campaign, surrogate, t, mode)]
+    iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=ISO_COLUMNS)
+    coverage = pd.DataFrame([res["coverage"] for res in results], columns=COVERAGE_COLUMNS)
+    keys = [(r["coverage"]["inputs"], r["coverage"]["model"], r["coverage"]["test_id"]) for r in results]
+    predictions = {key: r["frame"] for key, r in zip(keys, results)}
+    records = {key: r["record"] for key, r in zip(keys, results)}
+    result = Evaluation(iso, coverage, predictions, records, time.perf_counter() - t0)
+    if out is not None:
+        write_evaluation(result, out)
+    say(f"evaluate: done in {result.wall_time:.1f} s")
+    return result
+
+
+def _held_out(campaign: Campaign, holdout) -> list[str]:
+    """The tests to hold out one at a time, in table order."""
+    tests = campaign.tests
+    if len(tests) < 2:
+        raise InputError(f"leave-one-test-out needs at least 2 tests, got {len(tests)}", campaign.root, "source")
+    if holdout is None:
+        return tests
+    wanted = {holdout} if isinstance(holdout, str) else set(holdout)
+    unknown = sorted(wanted - set(tests))
+    if unknown or not wanted:
+        raise InputError(f"expected test run_ids among {tests}, got {sorted(wanted)}", campaign.root, "--holdout")
+    return [t for t in tests if t in wanted]
+
+
+def _check_grid(ks, inputs):
+    ks = list(ks)
+    if not ks or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1 for k in ks):
+        raise InputError(f"expected integers K >= 1, got {ks}", field="--k")
+    inputs = [inputs] if isinstance(inputs, str) else list(inputs)
+    bad = [m for m in inputs if m not in INPUTS]
+    if not inputs or bad:
+        raise InputError(f"expected input modes among {INPUTS}, got {inputs}", field="--inputs")
+    return ks, inputs
+
+
+def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, fit_kwargs) -> dict:
+    """Fit without ``test_id``, predict its condition, rate and measure the band coverage."""
+    t0 = time.perf_counter()
+    model = fit_model(campaign, k, inputs=mode, holdout=test_id, random_state=random_state, surrogate=surrogate,
+                      **fit_kwargs)
+    t1 = time.perf_counter()
+    test = campaign.pulses[test_id].after_contact()
+    pred = predict(model, test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
+                   test.meta.get("drive"), n_samples=n_samples, random_state=random_state,
+                   duration=float(test.time[-1]), dt=test.dt)
+    t2 = time.perf_counter()
+    name = f"K{k}"
+    iso = [_iso_row(test, pred.time, pred.decel, test_id, mode, name, w) for w in WINDOWS_MS]
+    frame = pred.frame()
+    frame["test_decel_g"] = np.interp(pred.time, test.time, test.decel) / G0
+    cov, n = band_coverage(test.time, test.decel, pred.time, pred.decel_lo, pred.decel_hi)
+    coverage = dict(test_id=test_id, inputs=mode, model=name, coverage=cov, n_points=n,
+                    extrapolation=pred.extrapolation["any"],
+                    n_gps_loading=_n_gps(model, "loading"), n_gps_unloading=_n_gps(model, "unloading"),
+                    cluster_switches=cluster_switches(model, pred), fit_s=t1 - t0, predict_s=t2 - t1)
+    record = FoldRecord(
+        test_id=test_id, inputs=mode, k=int(k), seed=int(random_state),
+        campaign={"name": campaign.root.name if campaign.root else "campaign", "hash": model.campaign_hash},
+        conditions={"v0_mps": test.v0, "front_weight_kg": test.front_weight, "rear_weight_kg": test.rear_weight,
+                    "powertrain": str(test.meta.get("powertrain")), "drive": str(test.meta.get("drive"))},
+        settings=_scalar_settings(model.settings, n_samples),
+        iso={row["window_ms"]: {s: row[s] for s in SCORES} for row in iso},
+        metrics={"coverage_95_0_60": cov, "fit_seconds": t1 - t0, "predict_seconds": t2 - t1,
+                 "cluster_switches": float(coverage["cluster_switches"]),
+                 "n_gps_loading": float(coverage["n_gps_loading"]),
+                 "n_gps_unloading": float(coverage["n_gps_unloading"]),
+                 "extrapolation": float(pred.extrapolation["any"])},
+        figures=[], prediction=f"{test_id}_prediction.csv",
+    )
+    return {"iso": iso, "coverage": coverage, "frame": frame, "record": record}
+
+
+def _scalar_settings(settings: dict, n_samples: int) -> dict:
+    """Model settings as the fold JSON's scalars (bias parameters flattened, tuples as text)."""
+    flat = {k: v for k, v in settings.items() if k not in ("bias_params", "holdout", "k", "inputs", "random_state")}
+    flat.update({f"bias_{k}": v if isinstance(v, (str, bool, int, float)) or v is None else str(v)
+                 for k, v in settings["bias_params"].items()})
+    return {**flat, "n_samples": int(n_samples)}
+
+
+def _n_gps(model, branch) -> int:
+    est = model.bias_.get(branch)
+    return 0 if est is None else len(est.gps_)
+
+
+def cluster_switches(model, pred) -> int:
+    """How often the most responsible GP changes along the mean-function rollout (both branches).
+
+    With ``assignment='select'`` each change is a switch of the bias function along the pulse.
+
+    Parameters
+    ----------
+    model : FittedModel
+    pred : Prediction
+
+    Returns
+    -------
+    int
+    """
+    path = pred.mean_path
+    cond = model.condition(**pred.condition)
+    count = 0
+    for branch, code in (("loading", Trajectory.LOADING), ("unloading", Trajectory.UNLOADING)):
+        est, on = model.bias_.get(branch), path.branch[0] == code
+        if est is None or on.sum() < 2:
+            continue
+        x = path.s[0, on] if branch == "loading" else path.s_max[0] - path.s[0, on]
+        resp = est.predict_responsibilities(model.features(branch, x, path.v[0, on], cond))
+        count += int(np.count_nonzero(np.diff(np.argmax(resp, axis=1))))
+    return count
+
+
+def band_coverage(t_test, a_test, t_pred, lo, hi, window_ms=COVERAGE_WINDOW_MS) -> tuple[float, int]:
+    """Fraction of test samples in the window inside the band ``[lo, hi]`` (interpolated to their times).
+
+    Parameters
+    ----------
+    t_test, a_test : ndarray, shape (n,)
+        Held-out test time (s) and deceleration (m/s^2).
+    t_pred, lo, hi : ndarray, shape (m,)
+        Prediction time (s) and the band's lower and upper deceleration (m/s^2).
+    window_ms : (float, float)
+
+    Returns
+    -------
+    coverage : float
+    n_points : int
+    """
+    inside = (t_test >= window_ms[0] * MS - 1e-12) & (t_test <= window_ms[1] * MS + 1e-12)
+    t, a = t_test[inside], a_test[inside]
+    ok = (a >= np.interp(t, t_pred, lo)) & (a <= np.interp(t, t_pred, hi))
+    return float(ok.mean()), int(ok.size)
+
+
+def _iso_row(test, t_cmp, cmp, test_id, mode, name, window) -> dict:
+    s = iso_score(test.time, test.decel, t_cmp, cmp, window[0] * MS, window[1] * MS)
+    return dict(test_id=test_id, inputs=mode, model=name, window_ms=f"{window[0]}-{window[1]}", **s)
+
+
+def _cae_rows(campaign, surrogate, test_id, mode) -> list[dict]:
+    """The CAE rows of one test: its companion run, or the surrogate's zero-bias pulse where it has none."""
+    test = campaign.pulses[test_id].after_contact()
+    cae = campaign.companion(test_id)
+    if cae is not None:
+        cae = cae.after_contact()
+        t, a = cae.time, cae.decel
+    else:
+        curve = surrogate.curve(test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
+                                test.meta.get("drive"))
+        traj = curve.rollout(test.dt, test.time.size - 1)
+        t, a = traj.time, traj.decel[0]
+    return [_iso_row(test, t, a, test_id, mode, "CAE", w) for w in WINDOWS_MS]
+
+
+def write_evaluation(result: Evaluation, out: str | os.PathLike) -> Path:
+    """Write the evaluation into ``out``, each file atomically.
+
+    ``iso_table.csv``, ``coverage.csv``, and per fold ``<inputs>/K<k>/<test>/<test>_prediction.csv``
+    and ``<test>.fold.json``. Fold files come first, the tables last: a complete ``iso_table.csv``
+    means a complete evaluation.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("expected a folder for the evaluation outputs, found a file", out, "--out")
+    for key, frame in result.predictions.items():
+        folder = fold_folder(out, *key)
+        _write_csv(frame, folder / f"{key[2]}_prediction.csv")
+        write_fold_json(folder / f"{key[2]}.fold.json", result.records[key])
+    _write_csv(result.coverage, out / "coverage.csv")
+    _write_csv(result.iso_table, out / "iso_table.csv")
+    return out
+
+
+def fold_folder(out: str | os.PathLike, inputs: str, model: str, test_id: str) -> Path:
+    """``out/<inputs>/<model>/<test_id>``: where one fold's files go."""
+    return Path(out) / inputs / model / test_id
+
+
+def _write_csv(frame: pd.DataFrame, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        frame.to_csv(tmp, index=False, float_format="%.6g")

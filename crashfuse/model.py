@@ -1,0 +1,373 @@
+"""The fitted model: CAE surrogate + one GMM-GP bias model per branch + settings; save and load.
+
+A :class:`FittedModel` holds everything a prediction needs (:func:`crashfuse.rollout.predict`):
+the CAE surrogate G_a, the companion CAE runs of the campaign's tests (for ``use_companion``),
+the loading and unloading bias models, the training ranges (for extrapolation flags), the
+settings, the campaign's content hash and the crashfuse version.
+
+Model (and shared surrogate) files are pickles of a versioned payload (``FORMAT``, with the
+crashfuse version): trusted input only, like any pickle. :func:`load_model` /
+:func:`load_surrogate` refuse another format version or another kind of object and name the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+
+import numpy as np
+
+import crashfuse
+from crashfuse.bias import GMMGPBias
+from crashfuse.dynamics import Trajectory
+from crashfuse.errors import InputError
+from crashfuse.io.atomic import atomic_path
+from crashfuse.io.campaign import Campaign
+from crashfuse.projection import BiasData, bias_data, bias_inputs
+from crashfuse.surrogate import CAECurve, CAESurrogate
+
+FORMAT = 1
+INPUTS = ("paper", "state")
+BRANCHES = ("loading", "unloading")
+CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
+_SEED_MAX = 2**31 - 1
+_MATCH_RTOL = 1e-6  # a condition "is" a test's when v0 and both masses agree to this
+_REACH_TOL = 0.02  # crush or rebound up to 2 % beyond the bias data is not flagged (thinning, rounding)
+
+
+@dataclasses.dataclass(frozen=True)
+class Condition:
+    """An impact condition in SI (speed m/s, axle masses kg) with optional labels."""
+
+    v0: float
+    front_weight: float
+    rear_weight: float
+    powertrain: str | None = None
+    drive: str | None = None
+
+    def array(self) -> np.ndarray:
+        """``[v0, front_weight, rear_weight]``, shape (3,)."""
+        return np.array([self.v0, self.front_weight, self.rear_weight])
+
+
+@dataclasses.dataclass
+class FittedModel:
+    """Everything a bias-corrected prediction needs (see :func:`fit_model`).
+
+    Attributes
+    ----------
+    surrogate : CAESurrogate
+        Fitted on the campaign's CAE runs only.
+    bias_ : dict of str to GMMGPBias or None
+        Per branch; None where the training tests gave no points on that branch (zero bias).
+    settings : dict
+        ``k, inputs, assignment, extra_inputs, n_grid, use_companion, random_state, holdout``.
+    columns : dict of str to tuple of str
+        Bias input columns per branch, in order (:func:`crashfuse.projection.bias_columns`).
+    training_tests : list of str
+        run_ids of the fold's training tests.
+    groups : dict of str to list of str
+        Per branch, the tests that actually contributed bias points (a subset of
+        ``training_tests``; never the holdout).
+    missing : dict of str to str
+        ``"<test>/<branch>"`` -> why that test gave no bias data there.
+    ranges : dict
+        ``condition``: (lo, hi) arrays of [v0, w_f, w_r] over the training tests; ``x_max`` per
+        branch: the largest branch coordinate in the bias data (m); ``cae_condition``: (lo, hi) of
+        the CAE runs' conditions (the surrogate's range).
+    companions : list of (Condition, Pulse)
+        Every test's condition and its companion CAE run.
+    categories : dict of str to list of str
+        Label levels of the one-hot extra inputs (empty unless ``extra_inputs``).
+    campaign_hash : str
+        :meth:`Campaign.content_hash` of the campaign fitted on.
+    version : str
+        crashfuse version that fitted it.
+    """
+
+    surrogate: CAESurrogate
+    bias_: dict
+    settings: dict
+    columns: dict
+    training_tests: list
+    groups: dict
+    missing: dict
+    ranges: dict
+    companions: list
+    categories: dict
+    campaign_hash: str
+    version: str = crashfuse.__version__
+
+    @property
+    def inputs(self) -> str:
+        """Bias input mode: ``paper`` or ``state``."""
+        return self.settings["inputs"]
+
+    def condition(self, v0, front_weight, rear_weight, powertrain=None, drive=None) -> Condition:
+        """A validated :class:`Condition` (SI).
+
+        Raises
+        ------
+        InputError
+            Non-positive or non-finite numbers; a label missing or unknown where the model uses it.
+        """
+        for name, val in zip(CONDITION_COLUMNS, (v0, front_weight, rear_weight)):
+            if isinstance(val, bool) or not isinstance(val, (int, float, np.number)) or not (np.isfinite(val) and val > 0):
+                raise InputError(f"expected a positive finite number (SI), got {val!r}", field=name)
+        for name, levels in self.categories.items():
+            val = {"powertrain": powertrain, "drive": drive}[name]
+            if str(val) not in levels:
+                raise InputError(f"this model uses {name} as an input: expected one of {levels}, got {val!r}",
+                                 field=name)
+        return Condition(float(v0), float(front_weight), float(rear_weight), powertrain, drive)
+
+    def features(self, branch: str, x, v, cond: Condition) -> np.ndarray:
+        """Bias inputs at branch coordinates ``x`` (m) and velocities ``v`` (m/s).
+
+        Parameters
+        ----------
+        branch : {"loading", "unloading"}
+        x, v : ndarray, shape (n,)
+        cond : Condition
+
+        Returns
+        -------
+        ndarray, shape (n, len(columns[branch]))
+            In the training columns' order (:func:`crashfuse.projection.bias_columns`).
+        """
+        return bias_inputs(self.columns[branch], x, v, cond.v0, cond.front_weight, cond.rear_weight,
+                           cond.powertrain, cond.drive)
+
+    def x_max(self, branch: str) -> float:
+        """Largest branch coordinate (m) in the bias data of ``branch`` (0 without data)."""
+        return float(self.ranges["x_max"].get(branch, 0.0))
+
+    def cae_curve(self, cond: Condition) -> CAECurve:
+        """The CAE curve at ``cond``: the companion run where ``use_companion`` and one matches, else the surrogate.
+
+        Raises
+        ------
+        InputError
+            If the surrogate would extrapolate (condition outside the CAE runs' range) and no
+            companion run matches.
+        """
+        pulse = self._companion(cond) if self.settings["use_companion"] else None
+        if pulse is None:
+            return self._surrogate_curve(cond, check=True)
+        curve = CAECurve.from_pulse(pulse)
+        # A companion that never stops inside its record borrows the surrogate's unloading branch.
+        return curve if curve.u is not None else CAECurve.from_pulse(pulse, self._surrogate_curve(cond, False))
+
+    def _surrogate_curve(self, cond: Condition, check: bool) -> CAECurve:
+        lo, hi = self.ranges["cae_condition"]
+        x = cond.array()
+        outside = (x < lo * (1 - _MATCH_RTOL)) | (x > hi * (1 + _MATCH_RTOL))
+        if check and outside.any():
+            i = int(np.flatnonzero(outside)[0])
+            raise InputError(f"{x[i]:.6g} is outside the CAE runs' range [{lo[i]:.6g}, {hi[i]:.6g}] (SI) and no "
+                             f"companion CAE run matches this condition: the surrogate would extrapolate",
+                             field=CONDITION_COLUMNS[i])
+        return self.surrogate.curve(cond.v0, cond.front_weight, cond.rear_weight, cond.powertrain, cond.drive)
+
+    def _companion(self, cond: Condition):
+        for c, pulse in self.companions:
+            if np.allclose(c.array(), cond.array(), rtol=_MATCH_RTOL, atol=0):
+                return pulse
+        return None
+
+    def extrapolation(self, cond: Condition, mean_traj) -> dict:
+        """Where the prediction leaves the bias data: condition columns, crush and rebound.
+
+        Parameters
+        ----------
+        cond : Condition
+        mean_traj : crashfuse.dynamics.Trajectory
+            The mean-function rollout (one sample).
+
+        Returns
+        -------
+        dict of str to bool
+            ``v0``, ``front_weight``, ``rear_weight``: outside the training tests' range;
+            ``crush``: maximum crush beyond the loading bias data; ``rebound``: unloading travel
+            beyond the unloading bias data; ``any``.
+        """
+        lo, hi = self.ranges["condition"]
+        x = cond.array()
+        flags = {name: bool(x[i] < lo[i] * (1 - _MATCH_RTOL) or x[i] > hi[i] * (1 + _MATCH_RTOL))
+                 for i, name in enumerate(CONDITION_COLUMNS)}
+        contact = mean_traj.branch[0] == Trajectory.UNLOADING  # after separation u grows in free flight
+        u = (mean_traj.s_max[0] - mean_traj.s[0])[contact]
+        flags["crush"] = bool(mean_traj.s_max[0] > (1 + _REACH_TOL) * self.x_max("loading"))
+        flags["rebound"] = bool(u.size and u.max() > (1 + _REACH_TOL) * self.x_max("unloading"))
+        flags["any"] = any(flags.values())
+        return flags
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the model file atomically (a versioned pickle)."""
+        _save("model", self, path)
+
+
+def load_model(path: str | os.PathLike) -> FittedModel:
+    """Read a model file written by :meth:`FittedModel.save`.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, not a crashfuse model, or another format version.
+    """
+    return _load("model", FittedModel, path)
+
+
+def save_surrogate(surrogate: CAESurrogate, path: str | os.PathLike) -> None:
+    """Write a fitted CAE surrogate atomically (a versioned pickle, shared by evaluation folds)."""
+    _save("surrogate", surrogate, path)
+
+
+def load_surrogate(path: str | os.PathLike) -> CAESurrogate:
+    """Read a surrogate file written by :func:`save_surrogate` (InputError as :func:`load_model`)."""
+    return _load("surrogate", CAESurrogate, path)
+
+
+def _save(kind: str, obj, path) -> None:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        pickle.dump({"format": FORMAT, kind: obj, "version": crashfuse.__version__}, fh,
+                    protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _load(kind: str, cls, path):
+    try:
+        with open(path, "rb") as fh:
+            payload = pickle.load(fh)
+    except FileNotFoundError:
+        raise InputError(f"no such {kind} file", path) from None
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError) as err:
+        raise InputError(f"not a crashfuse {kind} file ({type(err).__name__})", path) from None
+    if not isinstance(payload, dict) or not isinstance(payload.get(kind), cls):
+        raise InputError(f"not a crashfuse {kind} file", path)
+    if payload.get("format") != FORMAT:
+        raise InputError(f"{kind} file format {payload.get('format')!r}, this crashfuse reads {FORMAT}: refit",
+                         path, "format")
+    return payload[kind]
+
+
+def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, assignment: str = "select",
+              extra_inputs: bool = False, n_grid: int | None = 200, use_companion: bool = False,
+              random_state: int = 0, surrogate: CAESurrogate | None = None, **bias_params) -> FittedModel:
+    """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
+
+    Parameters
+    ----------
+    campaign : Campaign
+        Tests and CAE runs (SI, CFC 60 as read).
+    k : int
+        Mixture components K of each branch's bias model. Clusters the data cannot support (fewer
+        points than :class:`GMMGPBias` needs) are merged into their nearest neighbour: the model
+        keeps fewer GPs (``len(bias_['loading'].gps_)``), it does not fail.
+    inputs : {"paper", "state"}
+        Bias inputs ``[x, v0, w_f, w_r]`` or ``[x, v, v0, w_f, w_r]``.
+    holdout : str or sequence of str, optional
+        Test run_id(s) kept out of the bias data (a leave-one-test-out fold).
+    assignment : {"select", "blend"}
+        Cluster rule of :class:`GMMGPBias`.
+    extra_inputs : bool
+        Append one-hot powertrain and drive to the bias inputs.
+    n_grid : int or None
+        Bias points per test per branch after thinning (:func:`crashfuse.projection.bias_data`).
+    use_companion : bool
+        At prediction, use a test's companion CAE run directly when the condition is that test's
+        (the bias data always pair each test with its companion run).
+    random_state : int
+        Seeds the surrogate and both bias models.
+    surrogate : CAESurrogate, optional
+        Already fitted on this campaign's CAE runs (shared across folds; it sees no test data).
+    **bias_params
+        Further :class:`GMMGPBias` settings (``trend``, ``n_restarts``, ``max_fit_points`` ...).
+
+    Returns
+    -------
+    FittedModel
+
+    Raises
+    ------
+    InputError
+        No CAE runs; an unknown or non-test holdout; no training test left; a bad setting; a branch
+        with fewer bias points than the model has parameters.
+    """
+    _check_settings(k, inputs, assignment, n_grid, random_state)
+    if not campaign.cae:
+        raise InputError("the campaign has no CAE runs: the method corrects a CAE model", campaign.root, "source")
+    held = _holdout(campaign, holdout)
+    train = [t for t in campaign.tests if t not in held]
+    if not train:
+        raise InputError("no training test left after the holdout", campaign.root, "--holdout")
+    seeds = np.random.RandomState(random_state).randint(_SEED_MAX, size=3)
+    if surrogate is None:
+        surrogate = CAESurrogate(random_state=int(seeds[0])).fit(campaign)
+    data = bias_data(campaign, train, inputs, extra_inputs, n_grid, surrogate=surrogate, use_companion=True)
+    bias = {b: _fit_branch(data, b, k, assignment, int(seed), bias_params, campaign.root)
+            for b, seed in zip(BRANCHES, seeds[1:])}
+    settings = dict(k=int(k), inputs=inputs, assignment=assignment, extra_inputs=bool(extra_inputs),
+                    n_grid=n_grid, use_companion=bool(use_companion), random_state=random_state,
+                    holdout=sorted(held), bias_params=dict(bias_params))
+    return FittedModel(
+        surrogate=surrogate, bias_=bias, settings=settings,
+        columns={b: data.branch(b).columns for b in BRANCHES}, training_tests=train,
+        groups={b: sorted(set(data.branch(b).groups)) for b in BRANCHES}, missing=dict(data.missing),
+        ranges=_ranges(campaign, train, data), companions=_companions(campaign),
+        categories=dict(data.categories), campaign_hash=campaign.content_hash(),
+    )
+
+
+def _check_settings(k, inputs, assignment, n_grid, random_state) -> None:
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise InputError(f"expected an integer K >= 1, got {k!r}", field="--k")
+    if inputs not in INPUTS:
+        raise InputError(f"expected one of {INPUTS}, got {inputs!r}", field="--inputs")
+    if assignment not in ("select", "blend"):
+        raise InputError(f"expected 'select' or 'blend', got {assignment!r}", field="assignment")
+    if n_grid is not None and (isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)) or n_grid < 2):
+        raise InputError(f"expected an integer n_grid >= 2 or None, got {n_grid!r}", field="n_grid")
+    if isinstance(random_state, bool) or not isinstance(random_state, (int, np.integer)) or random_state < 0:
+        raise InputError(f"expected an integer seed >= 0, got {random_state!r}", field="--seed")
+
+
+def _holdout(campaign: Campaign, holdout) -> set[str]:
+    held = set() if holdout is None else {holdout} if isinstance(holdout, str) else set(holdout)
+    not_tests = sorted(held - set(campaign.tests))
+    if not_tests:
+        raise InputError(f"expected test run_ids to hold out, got {not_tests}", campaign.root, "--holdout")
+    return held
+
+
+def _fit_branch(data: BiasData, branch: str, k: int, assignment: str, seed: int, params: dict, root):
+    """One branch's GMMGPBias; None for an unloading branch without data (zero bias there)."""
+    d = data.branch(branch)
+    if d.y.size == 0 and branch == "unloading":
+        return None
+    est = GMMGPBias(n_clusters=k, assignment=assignment, random_state=seed, **params)
+    try:
+        return est.fit(d.X, d.y)
+    except ValueError as err:  # too few points for K and the GP parameters (GMMGPBias's own check)
+        raise InputError(f"{branch} branch, {d.y.size} bias points from {len(set(d.groups))} tests: {err}",
+                         root, "--k") from None
+
+
+def _ranges(campaign: Campaign, train: list, data: BiasData) -> dict:
+    conds = campaign.conditions.set_index("run_id")
+    cols = ["v0_mps", "front_weight_kg", "rear_weight_kg"]
+    tr, cae = conds.loc[train, cols].to_numpy(float), conds.loc[campaign.cae, cols].to_numpy(float)
+    x_max = {b: float(data.branch(b).X[:, 0].max()) if data.branch(b).y.size else 0.0 for b in BRANCHES}
+    return {"condition": (tr.min(axis=0), tr.max(axis=0)), "cae_condition": (cae.min(axis=0), cae.max(axis=0)),
+            "x_max": x_max}
+
+
+def _companions(campaign: Campaign) -> list:
+    out = []
+    for t in campaign.tests:
+        pulse = campaign.companion(t)
+        if pulse is not None:
+            p = campaign.pulses[t]
+            out.append((Condition(p.v0, p.front_weight, p.rear_weight, p.meta.get("powertrain"),
+                                  p.meta.get("drive")), pulse))
+    return out

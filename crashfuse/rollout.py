@@ -1,0 +1,385 @@
+"""Bias-corrected rollout with Monte Carlo bands (paper Eq. 22-23, issue 4 item 4).
+
+At a new condition (v0, axle masses, optionally powertrain and drive) the deceleration is the
+CAE curve of that condition (surrogate, or the companion run) plus the bias, per branch::
+
+    loading    a = CAE_loading(s)   + bias_loading(x = s, ...)
+    unloading  a = CAE_unloading(u) + bias_unloading(x = u = s_max - s, ...)
+
+stepped by :func:`crashfuse.dynamics.rollout` (velocity Verlet, barrier constraints).
+
+Monte Carlo. The condition is fixed for a prediction, so in ``paper`` mode each branch's bias is
+a function of the branch coordinate only: it is drawn jointly (latent, no nugget) on a uniform
+1-D grid of that coordinate and every sample reads its own draw by linear interpolation.
+In ``state`` mode the bias also depends on the current velocity. Its mean ``mu(x, v)`` is
+tabulated on a 2-D (x, v) grid and read at each sample's own (x, v); the random part is drawn
+jointly along the path ``(x, v_bar(x))`` of the deterministic mean-function rollout and added as
+a function of x alone::
+
+    f_j(x, v) = mu(x, v) + [g_j(x, v_bar(x)) - mu(x, v_bar(x))]
+
+exact for the mean; it approximates the deviation of a draw at a velocity away from the mean
+path by the deviation on that path (the draws' spread changes slowly with v where data exist).
+
+Two rollouts are reported: the deterministic *mean-function* rollout (bias = GP mean) and the
+Monte Carlo ensemble. The scored prediction, ``Prediction.decel``, is the **Monte Carlo mean**:
+the mean over samples of the deceleration at each time (issue 4, item 5).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pandas as pd
+
+from crashfuse.dynamics import Trajectory, rollout
+from crashfuse.errors import InputError
+from crashfuse.metrics import occupant_load_criterion
+from crashfuse.units import G0, KMH, MM, MS
+
+BRANCHES = ("loading", "unloading")
+BAND = (2.5, 97.5)  # percent: the 95 % band
+N_X = 160  # grid points per branch coordinate for the joint draws
+N_V = 16  # velocity grid points of the state-mode mean table
+GRID_MARGIN = 1.3  # branch grids reach this factor beyond the data and CAE ranges
+
+
+@dataclasses.dataclass(frozen=True)
+class Prediction:
+    """A bias-corrected prediction at one condition.
+
+    Attributes
+    ----------
+    time : ndarray, shape (n,)
+        Time since contact in s.
+    decel, velocity, displacement : ndarray, shape (n,)
+        Monte Carlo means (m/s^2, m/s, m): ``decel`` is the scored prediction.
+    decel_lo, decel_hi, velocity_lo, velocity_hi, displacement_lo, displacement_hi : ndarray, shape (n,)
+        2.5 and 97.5 percentiles over the samples.
+    mean_function_decel : ndarray, shape (n,)
+        Deceleration of the deterministic rollout with the bias set to its GP mean (m/s^2).
+    mean_path : Trajectory
+        That deterministic rollout in full (one sample: s, v, branch ...).
+    cae_decel : ndarray, shape (n,)
+        Deceleration of the rollout with no bias: the CAE curve alone (m/s^2).
+    metrics : dict
+        Pulse metrics (report units, see :func:`trajectory_metrics`) -> dict with ``mean``, ``lo``,
+        ``hi`` over the samples and ``mean_function``.
+    extrapolation : dict of str to bool
+        True where the condition or the mean rollout's crush/rebound lies outside the bias data;
+        there the GP reverts to its trend and the band widens.
+    n_samples : int
+    condition : dict
+        The condition predicted, SI.
+    """
+
+    time: np.ndarray
+    decel: np.ndarray
+    decel_lo: np.ndarray
+    decel_hi: np.ndarray
+    velocity: np.ndarray
+    velocity_lo: np.ndarray
+    velocity_hi: np.ndarray
+    displacement: np.ndarray
+    displacement_lo: np.ndarray
+    displacement_hi: np.ndarray
+    mean_function_decel: np.ndarray
+    mean_path: Trajectory
+    cae_decel: np.ndarray
+    metrics: dict
+    extrapolation: dict
+    n_samples: int
+    condition: dict
+
+    def frame(self) -> pd.DataFrame:
+        """The CSV table in report units (g for decelerations; m/s and m as named).
+
+        Returns
+        -------
+        DataFrame, shape (n, 12)
+            ``time_s, decel_g, decel_lo_g, decel_hi_g, cae_decel_g, mean_function_decel_g,
+            velocity_mps, velocity_lo_mps, velocity_hi_mps, displacement_m, displacement_lo_m,
+            displacement_hi_m``.
+        """
+        return pd.DataFrame({
+            "time_s": self.time,
+            "decel_g": self.decel / G0, "decel_lo_g": self.decel_lo / G0, "decel_hi_g": self.decel_hi / G0,
+            "cae_decel_g": self.cae_decel / G0, "mean_function_decel_g": self.mean_function_decel / G0,
+            "velocity_mps": self.velocity, "velocity_lo_mps": self.velocity_lo,
+            "velocity_hi_mps": self.velocity_hi,
+            "displacement_m": self.displacement, "displacement_lo_m": self.displacement_lo,
+            "displacement_hi_m": self.displacement_hi,
+        })
+
+
+class _BranchBias:
+    """One branch's bias for one prediction: mean table plus per-sample deviations.
+
+    Parameters
+    ----------
+    x_hi : float
+        Grid end of the branch coordinate in m (the grid starts at 0).
+    mean_table : ndarray, shape (N_X, nv)
+        GP mean (m/s^2) on the x grid times the velocity grid (``nv = 1``: no v dependence).
+    v_grid : ndarray, shape (nv,)
+    dev : ndarray, shape (m, N_X) or None
+        Per-sample deviation of the drawn function from the mean along the grid.
+    """
+
+    def __init__(self, x_hi, mean_table, v_grid, dev=None):
+        self.x_hi, self.mean_table, self.v_grid, self.dev = x_hi, mean_table, v_grid, dev
+
+    def __call__(self, x, v, rows=None):
+        """Bias in m/s^2 at (x, v), shape (k,), for the samples ``rows`` (default all, k = m)."""
+        ix, wx = _cell(x, 0.0, self.x_hi, self.mean_table.shape[0])
+        if self.mean_table.shape[1] == 1:
+            out = self.mean_table[ix, 0] * (1 - wx) + self.mean_table[ix + 1, 0] * wx
+        else:
+            iv, wv = _cell(v, self.v_grid[0], self.v_grid[-1], self.v_grid.size)
+            t = self.mean_table
+            out = ((t[ix, iv] * (1 - wv) + t[ix, iv + 1] * wv) * (1 - wx)
+                   + (t[ix + 1, iv] * (1 - wv) + t[ix + 1, iv + 1] * wv) * wx)
+        if self.dev is not None:
+            rows = np.arange(self.dev.shape[0]) if rows is None else rows
+            out = out + self.dev[rows, ix] * (1 - wx) + self.dev[rows, ix + 1] * wx
+        return out
+
+
+def _cell(x, lo, hi, n):
+    """Cell index (clipped, so values beyond the grid hold its end) and weight on a uniform grid."""
+    if n == 1 or hi <= lo:
+        return np.zeros(np.shape(x), dtype=int), np.zeros(np.shape(x))
+    z = np.clip((x - lo) * ((n - 1) / (hi - lo)), 0.0, n - 1)
+    i = np.minimum(z.astype(int), n - 2)
+    return i, z - i
+
+
+class _Tabulated:
+    """A CAE curve's loading branch tabulated once, for fast evaluation in the stepping loop.
+
+    The knots are the curve's own displacements (so values there are unchanged) plus a fine
+    uniform extension up to ``s_hi`` where the curve continues beyond its data.
+    """
+
+    def __init__(self, curve, s_hi: float):
+        s = np.asarray(curve.s, dtype=float)
+        knots = np.union1d(s, np.linspace(s[-1], s_hi, 512)) if s_hi > s[-1] else s
+        self.s, self.a = knots, curve.loading(knots)
+        self.unloading = curve.unloading
+
+    def loading(self, s):
+        """Loading deceleration (m/s^2) at ``s`` (m); the last value held beyond the table."""
+        return np.interp(s, self.s, self.a)
+
+
+def _decel_fn(curve, biases):
+    """decel_fn for :func:`crashfuse.dynamics.rollout`: CAE curve plus the branch biases."""
+    def decel(state):
+        a = np.empty(state.s.shape)
+        lo = state.loading
+        if lo.any():
+            a[lo] = curve.loading(state.s[lo]) + _sub(biases["loading"], state.s, state.v, lo)
+        un = ~lo
+        if un.any():
+            a[un] = curve.unloading(state.u[un]) + _sub(biases["unloading"], state.u, state.v, un)
+        return a
+    return decel
+
+
+def _sub(bias, x, v, mask):
+    """A branch bias evaluated for the masked samples only (zero where the branch has no model)."""
+    if bias is None:
+        return 0.0
+    return bias(x[mask], v[mask], np.flatnonzero(mask))
+
+
+def predict(model, v0, front_weight, rear_weight, powertrain=None, drive=None, n_samples=1000,
+            random_state=None, duration=0.1, dt=8e-5) -> Prediction:
+    """Bias-corrected pulse with a Monte Carlo band at one condition.
+
+    Parameters
+    ----------
+    model : crashfuse.model.FittedModel
+    v0 : float
+        Impact speed in m/s.
+    front_weight, rear_weight : float
+        Axle masses in kg.
+    powertrain, drive : str, optional
+        Labels, needed when the model uses them (``extra_inputs``) or the surrogate does.
+    n_samples : int
+        Monte Carlo samples (functions drawn per branch).
+    random_state : int, RandomState or None
+        Seeds the draws.
+    duration, dt : float
+        Length and step of the rollout in s (default 100 ms at 12.5 kHz, the campaign's rate).
+
+    Returns
+    -------
+    Prediction
+
+    Raises
+    ------
+    InputError
+        On a bad condition or setting, or a condition the CAE curve cannot be given for.
+    """
+    cond = model.condition(v0, front_weight, rear_weight, powertrain, drive)
+    n_samples = _positive_int(n_samples, "n_samples")
+    if not (np.isfinite(dt) and dt > 0 and np.isfinite(duration) and duration >= 16 * dt):
+        raise InputError(f"expected dt > 0 and a duration of at least 16 steps, got dt={dt}, duration={duration}",
+                         field="duration")
+    n_steps = int(round(duration / dt))
+    rng = np.random.RandomState(random_state) if not isinstance(random_state, np.random.RandomState) \
+        else random_state
+    curve, draws, mean_traj, cae = _prepare(model, cond, n_samples, rng, dt, n_steps)
+    mc = rollout(_decel_fn(curve, draws), np.full(n_samples, cond.v0), dt, n_steps)
+    return _summarise(mc, mean_traj, cae, cond, model.extrapolation(cond, mean_traj))
+
+
+def _prepare(model, cond, n_samples: int, rng, dt: float, n_steps: int):
+    """Everything before the Monte Carlo rollout.
+
+    Returns
+    -------
+    curve : _Tabulated
+        The CAE curve of the condition.
+    draws : dict of str to _BranchBias or None
+        Per branch, the bias of every sample.
+    mean_traj, cae : Trajectory
+        The mean-function rollout and the zero-bias (CAE-only) rollout, one sample each.
+    """
+    raw = model.cae_curve(cond)
+    curve = _Tabulated(raw, 2 * GRID_MARGIN * max(model.x_max("loading"), float(raw.s_max), float(raw.s[-1])))
+    cae = rollout(_decel_fn(curve, {b: None for b in BRANCHES}), cond.v0, dt, n_steps)
+    x_hi = _grid_ends(model, raw, cae)
+    means = {b: _mean_bias(model, b, cond, x_hi[b]) for b in BRANCHES}
+    mean_traj = rollout(_decel_fn(curve, means), cond.v0, dt, n_steps)
+    draws = {b: _drawn_bias(model, b, cond, means[b], mean_traj, n_samples, rng) for b in BRANCHES}
+    return curve, draws, mean_traj, cae
+
+
+def _positive_int(value, field):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InputError(f"expected an integer >= 1, got {value!r}", field=field)
+    return int(value)
+
+
+def _grid_ends(model, curve, cae: Trajectory) -> dict:
+    """End of each branch's grid (m): beyond the bias data, the CAE curve and the CAE rollout."""
+    s_reach = max(model.x_max("loading"), float(curve.s_max), float(cae.s_max[0]))
+    u_cae = float(np.max(cae.s_max[0] - cae.s[0]))
+    u_curve = 0.0 if curve.u is None else float(curve.u[-1])
+    u_reach = max(model.x_max("unloading"), u_curve, u_cae)
+    return {"loading": GRID_MARGIN * s_reach, "unloading": GRID_MARGIN * max(u_reach, 1e-3)}
+
+
+def _velocity_grid(branch: str, v0: float) -> np.ndarray:
+    """Velocities the state-mode mean table spans (m/s): forward on loading, rebound on unloading."""
+    lo, hi = (-0.05 * v0, 1.05 * v0) if branch == "loading" else (-0.6 * v0, 0.05 * v0)
+    return np.linspace(lo, hi, N_V)
+
+
+def _mean_bias(model, branch, cond, x_hi) -> _BranchBias | None:
+    """The GP mean of one branch on its grid (x, and v in state mode)."""
+    est = model.bias_.get(branch)
+    if est is None:
+        return None
+    x = np.linspace(0.0, x_hi, N_X)
+    v_grid = _velocity_grid(branch, cond.v0) if model.inputs == "state" else np.zeros(1)
+    xx, vv = np.meshgrid(x, v_grid, indexing="ij")
+    table = est.predict(model.features(branch, xx.ravel(), vv.ravel(), cond)).reshape(xx.shape)
+    return _BranchBias(x_hi, table, v_grid)
+
+
+def _drawn_bias(model, branch, cond, mean: _BranchBias | None, path: Trajectory, n_samples, rng):
+    """Joint latent draws of one branch's bias along the mean-function rollout's path."""
+    if mean is None:
+        return None
+    x = np.linspace(0.0, mean.x_hi, N_X)
+    v = _path_velocity(branch, path, x) if model.inputs == "state" else np.zeros_like(x)
+    X = model.features(branch, x, v, cond)
+    est = model.bias_[branch]
+    g = est.sample_functions(X, n_samples, rng.randint(2**31 - 1))
+    dev = g - est.predict(X)[None, :]
+    return _BranchBias(mean.x_hi, mean.mean_table, mean.v_grid, dev)
+
+
+def _path_velocity(branch, path: Trajectory, x) -> np.ndarray:
+    """Velocity of the mean rollout as a function of the branch coordinate, at ``x`` (held beyond)."""
+    on = path.branch[0] == (Trajectory.LOADING if branch == "loading" else Trajectory.UNLOADING)
+    if not on.any():
+        return np.zeros_like(x) if branch == "unloading" else np.full_like(x, path.v[0, 0])
+    xb = path.s[0, on] if branch == "loading" else path.s_max[0] - path.s[0, on]
+    vb = path.v[0, on]
+    keep = xb > np.maximum.accumulate(np.r_[-np.inf, xb[:-1]])  # strictly increasing for interp
+    return np.interp(x, xb[keep], vb[keep])
+
+
+def _summarise(mc: Trajectory, mean_traj: Trajectory, cae: Trajectory, cond, flags) -> Prediction:
+    lo, hi = BAND
+    pct = {name: np.percentile(arr, [lo, hi], axis=0) for name, arr in
+           (("decel", mc.decel), ("velocity", mc.v), ("displacement", mc.s))}
+    return Prediction(
+        time=mc.time,
+        decel=mc.decel.mean(axis=0), decel_lo=pct["decel"][0], decel_hi=pct["decel"][1],
+        velocity=mc.v.mean(axis=0), velocity_lo=pct["velocity"][0], velocity_hi=pct["velocity"][1],
+        displacement=mc.s.mean(axis=0), displacement_lo=pct["displacement"][0],
+        displacement_hi=pct["displacement"][1],
+        mean_function_decel=mean_traj.decel[0], mean_path=mean_traj, cae_decel=cae.decel[0],
+        metrics=_metric_bands(mc, mean_traj, cond.v0), extrapolation=flags,
+        n_samples=mc.s.shape[0], condition=dataclasses.asdict(cond),
+    )
+
+
+def trajectory_metrics(traj: Trajectory, v0: float) -> dict[str, np.ndarray]:
+    """Pulse metrics of every sample of a rollout, in report units.
+
+    The definitions are those of :func:`crashfuse.metrics.pulse_metrics` applied to the rolled-out
+    deceleration (already CFC 60-like: the CAE curve and a smooth bias), its Verlet velocity and
+    displacement.
+
+    Parameters
+    ----------
+    traj : Trajectory
+        ``m`` samples.
+    v0 : float
+        Impact speed in m/s.
+
+    Returns
+    -------
+    dict of str to ndarray, shape (m,)
+        ``peak_decel_g``, ``t_peak_ms``, ``t_zero_velocity_ms``, ``dynamic_crush_mm``,
+        ``rebound_kmh``, ``olc_g``; NaN where a sample does not reach the quantity.
+    """
+    t, v = traj.time, traj.v
+    i_peak = np.argmax(traj.decel, axis=1)
+    rows = np.arange(v.shape[0])
+    stopped = (v <= 0).any(axis=1)
+    i0 = np.where(stopped, np.argmax(v <= 0, axis=1), 1)
+    v_a, v_b = v[rows, i0 - 1], v[rows, i0]
+    t_stop = t[i0 - 1] + (t[i0] - t[i0 - 1]) * v_a / np.where(v_a - v_b == 0, 1.0, v_a - v_b)
+    olc = [occupant_load_criterion(t, v[k], traj.s[k], v0) for k in rows]
+    return {
+        "peak_decel_g": traj.decel[rows, i_peak] / G0,
+        "t_peak_ms": t[i_peak] / MS,
+        "t_zero_velocity_ms": np.where(stopped, t_stop / MS, np.nan),
+        "dynamic_crush_mm": np.where(stopped, traj.s_max / MM, np.nan),
+        "rebound_kmh": np.maximum(0.0, -v.min(axis=1)) / KMH,
+        "olc_g": np.array([np.nan if o is None else o / G0 for o in olc]),
+    }
+
+
+def _metric_bands(mc: Trajectory, mean_traj: Trajectory, v0: float) -> dict:
+    lo, hi = BAND
+    det = trajectory_metrics(mean_traj, v0)
+    out = {}
+    for name, vals in trajectory_metrics(mc, v0).items():
+        ok = vals[np.isfinite(vals)]
+        band = np.percentile(ok, [lo, hi]) if ok.size else (None, None)
+        out[name] = {"mean": _num(ok.mean()) if ok.size else None, "lo": _num(band[0]), "hi": _num(band[1]),
+                     "mean_function": _num(det[name][0]), "fraction_reached": ok.size / vals.size}
+    return out
+
+
+def _num(x):
+    return None if x is None or not np.isfinite(x) else float(x)

@@ -1,0 +1,151 @@
+"""Leave-one-test-out evaluation: no leakage, the table contract, CAE rows, coverage, CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import crashfuse.evaluate as ev
+from crashfuse.cli import main
+from crashfuse.errors import InputError
+from crashfuse.io.campaign import write_campaign
+from crashfuse.iso18571 import iso_score
+from crashfuse.model import fit_model
+from crashfuse.report import read_fold_json
+from crashfuse.surrogate import CAESurrogate
+from crashfuse.world.generate import build
+from crashfuse.world.presets import resolve
+
+KEEP = ["T02", "T05", "T08"]
+FAST = dict(n_grid=40, n_restarts=0)
+
+
+@pytest.fixture(scope="module")
+def campaign():
+    full = build(resolve("paper"), seed=0, n_cae=16)[0]
+    companions = [full.companion(t).run_id for t in KEEP]
+    return full.subset(KEEP + companions + [r for r in full.cae if r.startswith("C0")])
+
+
+@pytest.fixture(scope="module")
+def surrogate(campaign):
+    return CAESurrogate(random_state=0).fit(campaign)
+
+
+@pytest.fixture(scope="module")
+def result(campaign, surrogate, tmp_path_factory):
+    out = tmp_path_factory.mktemp("evaluation")
+    return ev.evaluate(campaign, ks=[1, 2], inputs=["paper", "state"], out=out, n_samples=40, n_jobs=2,
+                       surrogate=surrogate, progress=None, **FAST), out
+
+
+def test_no_fold_sees_its_held_out_test(campaign, surrogate, monkeypatch):
+    seen = []
+
+    def spy(*args, **kwargs):
+        model = fit_model(*args, **kwargs)
+        seen.append((kwargs["holdout"], model))
+        return model
+
+    monkeypatch.setattr(ev, "fit_model", spy)
+    ev.evaluate(campaign, ks=[1], inputs=["paper"], n_samples=5, n_jobs=1, surrogate=surrogate, progress=None,
+                **FAST)
+    assert sorted(h for h, _ in seen) == KEEP
+    for held, model in seen:
+        assert held not in model.training_tests
+        assert held not in model.groups["loading"] + model.groups["unloading"]
+        assert set(model.groups["loading"]) == set(KEEP) - {held}
+        assert model.surrogate is surrogate  # fitted once on CAE runs, shared
+
+
+def test_iso_table_contract(result):
+    res, out = result
+    iso = pd.read_csv(out / "iso_table.csv", dtype={"window_ms": str})
+    assert list(iso.columns) == ["test_id", "inputs", "model", "window_ms", "overall", "corridor", "phase",
+                                 "magnitude", "slope"]
+    assert set(iso["model"]) == {"CAE", "K1", "K2"} and set(iso["inputs"]) == {"paper", "state"}
+    assert set(iso["window_ms"]) == {"0-20", "0-40", "0-60"}
+    # one row per test x inputs x model x window
+    assert len(iso) == len(KEEP) * 2 * 3 * 3
+    assert not iso.duplicated(["test_id", "inputs", "model", "window_ms"]).any()
+    assert iso[["overall", "corridor", "phase", "magnitude", "slope"]].apply(lambda c: c.between(0, 1)).all().all()
+
+
+def test_cae_rows_rate_the_companion_run(campaign, result):
+    iso = result[0].iso_table
+    test, cae = campaign.pulses["T05"], campaign.companion("T05")
+    row = iso[(iso.test_id == "T05") & (iso.model == "CAE") & (iso.window_ms == "0-40") & (iso.inputs == "state")]
+    expect = iso_score(test.time, test.decel, cae.time, cae.decel, 0.0, 0.04)["overall"]
+    assert row["overall"].item() == pytest.approx(expect, abs=1e-12)
+
+
+def test_fold_rows_rate_the_written_prediction(campaign, result):
+    res, out = result
+    frame = pd.read_csv(out / "state" / "K2" / "T05" / "T05_prediction.csv")
+    test = campaign.pulses["T05"]
+    expect = iso_score(test.time, test.decel, frame["time_s"], frame["decel_g"] * 9.80665, 0.0, 0.06)["overall"]
+    iso = res.iso_table
+    got = iso[(iso.test_id == "T05") & (iso.model == "K2") & (iso.window_ms == "0-60") & (iso.inputs == "state")]
+    assert got["overall"].item() == pytest.approx(expect, abs=2e-3)  # the CSV carries 6 significant digits
+
+
+def test_coverage_is_the_fraction_inside_the_band(campaign, result):
+    res, out = result
+    cov = pd.read_csv(out / "coverage.csv")
+    assert len(cov) == len(KEEP) * 2 * 2 and cov["coverage"].between(0, 1).all()
+    assert (cov.loc[cov.model == "K1", "cluster_switches"] == 0).all()  # one GP: nothing to switch
+    frame = pd.read_csv(out / "paper" / "K1" / "T02" / "T02_prediction.csv")
+    test = campaign.pulses["T02"]
+    win = test.time <= 0.06 + 1e-12
+    inside = ((test.decel[win] >= np.interp(test.time[win], frame.time_s, frame.decel_lo_g * 9.80665) - 1e-3)
+              & (test.decel[win] <= np.interp(test.time[win], frame.time_s, frame.decel_hi_g * 9.80665) + 1e-3))
+    row = cov[(cov.test_id == "T02") & (cov.model == "K1") & (cov.inputs == "paper")]
+    assert row["coverage"].item() == pytest.approx(inside.mean(), abs=0.01)
+    assert row["n_points"].item() == win.sum()
+
+
+def test_band_coverage_closed_form():
+    t = np.linspace(0, 0.1, 101)
+    a = np.sin(40 * t)
+    lo = np.where(t < 0.03, a - 1, a + 0.5)  # the first 30 samples of the 61 in 0-60 ms are inside
+    cov, n = ev.band_coverage(t, a, t, lo, lo + 2)
+    assert n == 61 and cov == pytest.approx(30 / 61)
+
+
+@pytest.mark.parametrize("kw, field", [(dict(ks=[0]), "--k"), (dict(inputs=["both"]), "--inputs")])
+def test_bad_settings(campaign, surrogate, kw, field):
+    with pytest.raises(InputError) as err:
+        ev.evaluate(campaign, surrogate=surrogate, progress=None, **kw)
+    assert err.value.field == field
+
+
+def test_fold_json_matches_the_table(result):
+    res, out = result
+    record = read_fold_json(out / "state" / "K1" / "T08" / "T08.fold.json")
+    iso = res.iso_table
+    rows = iso[(iso.test_id == "T08") & (iso.model == "K1") & (iso.inputs == "state")]
+    for _, row in rows.iterrows():
+        assert record.iso[row.window_ms]["overall"] == pytest.approx(row.overall, abs=1e-12)
+    assert record.k == 1 and record.campaign["hash"] == res.records[("state", "K1", "T08")].campaign["hash"]
+    assert (out / "state" / "K1" / "T08" / record.prediction).exists()
+
+
+def test_cli_prepare_then_one_fold(campaign, tmp_path):
+    small = campaign.subset(["T05", "T08", campaign.companion("T05").run_id, campaign.companion("T08").run_id]
+                            + campaign.cae[len(KEEP):])
+    folder = write_campaign(small, tmp_path / "campaign")
+    surrogate = tmp_path / "surrogate.pkl"
+    assert main(["prepare", str(folder), "--out", str(surrogate)]) == 0
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(folder), "--k", "1", "--inputs", "paper", "--holdout", "T08", "--surrogate",
+                 str(surrogate), "--samples", "20", "--jobs", "1", "--n-grid", "40", "--out", str(out)]) == 0
+    iso = pd.read_csv(out / "iso_table.csv")
+    assert set(iso["test_id"]) == {"T08"} and set(iso["model"]) == {"CAE", "K1"}
+    assert sorted(p.name for p in (out / "paper" / "K1" / "T08").iterdir()) == ["T08.fold.json",
+                                                                               "T08_prediction.csv"]
+    assert main(["evaluate", str(folder), "--k", "0", "--out", str(tmp_path / "x")]) == 2
+    assert main(["evaluate", str(folder), "--k", "1", "--holdout", "C0001", "--out", str(tmp_path / "x")]) == 2
+    assert main(["evaluate", str(folder), "--k", "1", "--surrogate", str(folder / "conditions.csv"),
+                 "--out", str(tmp_path / "x")]) == 2
+    assert not (tmp_path / "x").exists()

@@ -1,0 +1,207 @@
+"""Bias-corrected rollout and the model file: zero bias, true bias, band width on a known GP,
+extrapolation, reproducibility, CLI round trip and bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from crashfuse.cli import main
+from crashfuse.errors import InputError
+from crashfuse.iso18571 import iso_score
+from crashfuse.model import fit_model, load_model
+from crashfuse.rollout import predict
+from crashfuse.surrogate import CAESurrogate
+from crashfuse.world.generate import build, generate
+from crashfuse.world.presets import resolve
+
+G = 9.80665
+MPH, LB = 0.44704, 0.45359237  # written here independently of crashfuse.units
+N_CAE = 20
+FAST = dict(n_grid=40, n_restarts=0)  # few bias points and one optimiser start: fast fits
+
+
+@pytest.fixture(scope="module")
+def campaign():
+    return build(resolve("paper"), seed=0, n_cae=N_CAE)[0]
+
+
+@pytest.fixture(scope="module")
+def surrogate(campaign):
+    return CAESurrogate(random_state=0).fit(campaign)
+
+
+@pytest.fixture(scope="module")
+def model(campaign, surrogate):
+    return fit_model(campaign, 1, inputs="paper", surrogate=surrogate, **FAST)
+
+
+def _at(model, pulse, **kw):
+    return predict(model, pulse.v0, pulse.front_weight, pulse.rear_weight, pulse.meta["powertrain"],
+                   pulse.meta["drive"], duration=float(pulse.time[-1]), dt=pulse.dt, **kw)
+
+
+def test_zero_bias_reproduces_the_companion_cae_pulse(campaign, model):
+    zero = dataclasses.replace(model, bias_={"loading": None, "unloading": None},
+                               settings={**model.settings, "use_companion": True})
+    test = campaign.pulses["T06"]
+    cae = campaign.companion("T06")
+    pred = _at(zero, test, n_samples=3, random_state=0)
+    # Same integrator and the run's own branch curves: exact while loading, close after.
+    assert np.abs(pred.decel - cae.decel).max() < 0.1 * G
+    np.testing.assert_allclose(pred.decel, pred.cae_decel, rtol=1e-12)  # mean of identical samples
+    np.testing.assert_allclose(pred.decel_lo, pred.decel_hi, rtol=1e-12)
+    assert iso_score(cae.time, cae.decel, pred.time, pred.decel)["overall"] > 0.99
+
+
+def test_true_bias_reproduces_the_test(campaign, surrogate):
+    # Trained on T04 alone, its own bias is interpolated: the rollout must give T04 back.
+    others = [t for t in campaign.tests if t != "T04"]
+    m = fit_model(campaign, 1, inputs="paper", holdout=others, surrogate=surrogate, use_companion=True,
+                  n_grid=300)
+    test = campaign.pulses["T04"]
+    pred = _at(m, test, n_samples=200, random_state=1)
+    cae = campaign.companion("T04")
+    iso_cae = iso_score(test.time, test.decel, cae.time, cae.decel)["overall"]
+    iso_pred = iso_score(test.time, test.decel, pred.time, pred.decel)["overall"]
+    assert iso_pred > 0.97 > iso_cae
+    early = pred.time <= 0.06
+    assert np.abs(pred.mean_function_decel - test.decel)[early].max() < 1.5 * G
+
+
+class KnownGP:
+    """A zero-mean GP on the branch coordinate: sigma^2 exp(-(x - x')^2 / (2 l^2)), exact draws."""
+
+    def __init__(self, sigma, length):
+        self.sigma, self.length = sigma, length
+
+    def predict(self, X):
+        return np.zeros(len(X))
+
+    def std(self, x):
+        return np.full(np.shape(x), self.sigma)
+
+    def sample_functions(self, X, n_samples, random_state):
+        x = X[:, 0]
+        cov = self.sigma**2 * np.exp(-0.5 * (x[:, None] - x[None, :]) ** 2 / self.length**2)
+        L = np.linalg.cholesky(cov + 1e-10 * self.sigma**2 * np.eye(x.size))
+        return (L @ np.random.RandomState(random_state).standard_normal((x.size, n_samples))).T
+
+
+def test_band_width_matches_a_known_gp(campaign, model):
+    sigma = 2.0 * G
+    known = dataclasses.replace(model, bias_={"loading": KnownGP(sigma, 0.05), "unloading": None},
+                                settings={**model.settings, "use_companion": True})
+    pred = _at(known, campaign.pulses["T08"], n_samples=4000, random_state=3)
+    # Early on every sample sits at (almost) the same s, so the band is the GP's pointwise 95 % interval.
+    early = (pred.time >= 0.001) & (pred.time <= 0.005)
+    half = 0.5 * (pred.decel_hi - pred.decel_lo)[early]
+    np.testing.assert_allclose(half, 1.959964 * sigma, rtol=0.07)
+    np.testing.assert_allclose(pred.decel[early], pred.cae_decel[early], atol=0.1 * sigma)
+
+
+def test_extrapolation_is_flagged_and_widens_the_band(campaign, model):
+    inside = campaign.pulses["T05"]
+    lo, hi = model.ranges["condition"]
+    cae_hi = model.ranges["cae_condition"][1]
+    v_out = 0.5 * (hi[0] + cae_hi[0])
+    assert v_out > 1.05 * hi[0], "the CAE runs must reach beyond the tests for this case"
+    p_in = _at(model, inside, n_samples=300, random_state=0)
+    p_out = predict(model, v_out, inside.front_weight, inside.rear_weight, inside.meta["powertrain"],
+                    inside.meta["drive"], n_samples=300, random_state=0)
+    assert not p_in.extrapolation["v0"] and p_out.extrapolation["v0"] and p_out.extrapolation["any"]
+    width_in = np.median((p_in.decel_hi - p_in.decel_lo)[p_in.time <= 0.06])
+    width_out = np.median((p_out.decel_hi - p_out.decel_lo)[p_out.time <= 0.06])
+    assert width_out > 1.5 * width_in
+
+
+def test_same_seed_same_prediction_and_outputs_are_complete(campaign, model):
+    test = campaign.pulses["T09"]
+    a, b = (_at(model, test, n_samples=50, random_state=7) for _ in range(2))
+    c = _at(model, test, n_samples=50, random_state=8)
+    np.testing.assert_array_equal(a.decel, b.decel)
+    assert not np.array_equal(a.decel, c.decel)
+    frame = a.frame()
+    assert list(frame.columns[:5]) == ["time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g"]
+    assert {"velocity_mps", "velocity_lo_mps", "displacement_hi_m"} <= set(frame.columns)
+    assert np.all(frame["decel_lo_g"] <= frame["decel_hi_g"]) and frame.notna().all().all()
+    crush = a.metrics["dynamic_crush_mm"]
+    assert crush["lo"] <= crush["mean"] <= crush["hi"]
+    assert set(a.metrics) == {"peak_decel_g", "t_peak_ms", "t_zero_velocity_ms", "dynamic_crush_mm",
+                              "rebound_kmh", "olc_g"}
+
+
+def test_state_inputs_predict(campaign, surrogate):
+    m = fit_model(campaign, 2, inputs="state", holdout="T07", surrogate=surrogate, **FAST)
+    assert m.columns["loading"][:2] == ("x_m", "v_mps")
+    assert "T07" not in m.groups["loading"] + m.groups["unloading"]
+    pred = _at(m, campaign.pulses["T07"], n_samples=100, random_state=0)
+    assert np.all(np.isfinite(pred.decel)) and np.all(pred.decel_lo <= pred.decel_hi)
+
+
+@pytest.mark.parametrize("kw, field", [
+    (dict(v0=-1.0), "v0"),
+    (dict(front_weight=float("nan")), "front_weight"),
+    (dict(n_samples=0), "n_samples"),
+    (dict(v0=60.0), "v0"),  # beyond the CAE runs and no companion: the surrogate would extrapolate
+    (dict(powertrain=None), "powertrain"),
+])
+def test_bad_prediction_input(campaign, model, kw, field):
+    t = campaign.pulses["T03"]
+    args = dict(v0=t.v0, front_weight=t.front_weight, rear_weight=t.rear_weight, powertrain="Type I", drive="FWD",
+                n_samples=5)
+    with pytest.raises(InputError) as err:
+        predict(model, **{**args, **kw})
+    assert err.value.field == field
+
+
+def test_fit_errors(campaign, surrogate):
+    cae_only = campaign.subset(campaign.cae)
+    with pytest.raises(InputError, match="no training test"):
+        fit_model(cae_only, 1, surrogate=surrogate)
+    tests_only = campaign.subset([])
+    with pytest.raises(InputError, match="no CAE runs"):
+        fit_model(tests_only, 1, surrogate=surrogate)
+    with pytest.raises(InputError) as err:
+        fit_model(campaign, 1, holdout="C0001", surrogate=surrogate)
+    assert err.value.field == "--holdout"
+    with pytest.raises(InputError) as err:  # one test, 5 points per branch: fewer than the GP's parameters
+        fit_model(campaign, 3, holdout=campaign.tests[1:], surrogate=surrogate, n_grid=5)
+    assert err.value.field == "--k"
+
+
+def test_model_file_errors(tmp_path, model):
+    with pytest.raises(InputError, match="no such model file"):
+        load_model(tmp_path / "missing.pkl")
+    (tmp_path / "junk.pkl").write_bytes(b"not a pickle")
+    with pytest.raises(InputError, match="not a crashfuse model"):
+        load_model(tmp_path / "junk.pkl")
+    model.save(tmp_path / "m.pkl")
+    assert load_model(tmp_path / "m.pkl").campaign_hash == model.campaign_hash
+
+
+def test_cli_fit_predict_round_trip(tmp_path, capsys):
+    folder = generate(tmp_path / "campaign", resolve("paper"), seed=1, n_cae=12)
+    model_file = tmp_path / "model.pkl"
+    assert main(["fit", str(folder), "--k", "1", "--holdout", "T02", "--n-grid", "40", "--out", str(model_file)]) == 0
+    out = tmp_path / "pred.csv"
+    # T02's condition in report units (Table 1: 12.1 mph is 5.409 m/s).
+    argv = ["predict", str(model_file), "--v0-mph", str(5.409184 / MPH), "--front-weight-lb",
+            str(981.437811 / LB), "--rear-weight-lb", str(722.527286 / LB), "--powertrain", "Type II",
+            "--drive", "AWD", "--samples", "40", "--seed", "3", "--out", str(out), "--json"]
+    capsys.readouterr()
+    assert main(argv) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["settings"]["holdout"] == ["T02"] and report["n_samples"] == 40
+    frame = pd.read_csv(out)
+    assert list(frame.columns[:5]) == ["time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g"]
+    m = load_model(model_file)
+    again = predict(m, 5.409184, 981.437811, 722.527286, "Type II", "AWD", n_samples=40, random_state=3)
+    np.testing.assert_allclose(frame["decel_g"], again.decel / G, rtol=1e-5, atol=1e-6)
+    assert main(argv[:3] + ["-5"] + argv[4:]) == 2
+    assert main(["predict", str(tmp_path / "nope.pkl"), *argv[2:]]) == 2
+    assert not (tmp_path / "nope.csv").exists()
