@@ -1,10 +1,115 @@
-"""`make reproduce`: run the whole workflow on the embedded default campaign."""
+"""`make reproduce`: run the whole workflow, build its HTML report, print the table and where things are.
 
+``python -m crashfuse.reproduce`` runs Snakemake on the repository's ``Snakefile`` with the local
+profile (2 cores) and ``config/config.yaml`` (the embedded default: the world's ``paper``
+campaign, 11 tests x K = 1, 2, 3 x both input modes), then ``snakemake --report``, then prints the
+paper's Table 2 for each input mode and the paths of the figures, the report and the MLflow store.
+A finished run does nothing the second time; a killed run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
 import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from crashfuse.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+SNAKEFILE = ROOT / "Snakefile"
+PROFILE = ROOT / "workflow" / "profiles" / "local"
+DEFAULT_CONFIG = ROOT / "config" / "config.yaml"
 
 
-def main() -> int:
-    print("crashfuse reproduce: the workflow does not exist yet (issue 5); nothing to run.")
+def snakemake_command(configfile: Path, workdir: Path, cores: int, *extra: str) -> list[str]:
+    """The Snakemake invocation of this repository's workflow.
+
+    Parameters
+    ----------
+    configfile : Path
+        Workflow config (YAML).
+    workdir : Path
+        Working directory: relative paths in the config (``results``) and the embedded MLflow
+        store (``mlflow.db``) live here.
+    cores : int
+        Cores Snakemake may use.
+    *extra : str
+        Further Snakemake arguments.
+
+    Returns
+    -------
+    list of str
+        argv, starting with this interpreter (so the jobs use this environment's ``crashfuse``).
+    """
+    return [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), "--profile", str(PROFILE),
+            "--directory", str(workdir), "--configfile", str(configfile), "--cores", str(cores), *extra]
+
+
+def results_dir(configfile: Path, workdir: Path) -> Path:
+    """The config's ``results`` folder (schema default ``results``), resolved against ``workdir``."""
+    try:
+        config = yaml.safe_load(configfile.read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise InputError(f"expected a readable YAML workflow config: {err}", configfile) from None
+    if not isinstance(config, dict):
+        raise InputError("expected a YAML mapping of settings", configfile)
+    return workdir / config.get("results", "results")
+
+
+def summary(results: Path) -> str:
+    """The Table 2 of each input mode and the paths of the figures, report and MLflow store.
+
+    Parameters
+    ----------
+    results : Path
+        The workflow's results folder after a complete run.
+
+    Returns
+    -------
+    str
+        The Table 2 of each input mode and the mean scores over the held-out tests (Markdown),
+        then one ``name: path`` line per output.
+    """
+    tables = [*sorted((results / "tables").glob("table2_*.md")), results / "tables" / "summary.md"]
+    lines = [t.read_text() for t in tables if t.is_file()]
+    lines += [f"ISO table:        {results / 'iso_table.csv'}",
+              f"Tables (md, tex): {results / 'tables'}",
+              f"Summary figure:   {results / 'figures' / 'iso_summary.png'}",
+              f"Fold figures:     {results / 'folds'}/<inputs>-K<k>-<test>/**/<test>.png",
+              f"HTML report:      {results / 'report.html'}"]
+    tracking = results / "tracking.json"
+    if tracking.is_file():
+        logged = json.loads(tracking.read_text())
+        lines += [f"MLflow store:     {logged['tracking_uri']} (experiment {logged['experiment_name']})",
+                  f"MLflow UI:        mlflow ui --backend-store-uri {logged['tracking_uri']}"]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the workflow and its report; print the summary. Returns Snakemake's exit code on failure."""
+    p = argparse.ArgumentParser(prog="python -m crashfuse.reproduce", description=__doc__.splitlines()[0])
+    p.add_argument("--configfile", type=Path, default=DEFAULT_CONFIG, help="workflow config (default config/config.yaml)")
+    p.add_argument("--workdir", type=Path, default=ROOT, help="working directory (default the repository)")
+    p.add_argument("--cores", type=int, default=2, help="cores for Snakemake (default 2)")
+    args = p.parse_args(argv)
+    configfile, workdir = args.configfile.resolve(), args.workdir.resolve()
+    try:
+        results = results_dir(configfile, workdir)
+    except InputError as err:
+        print(f"crashfuse reproduce: error: {err}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    for extra in ((), ("--report", str(results / "report.html"))):
+        done = subprocess.run(snakemake_command(configfile, workdir, args.cores, *extra), check=False)
+        if done.returncode:
+            return done.returncode
+    print(f"\ncrashfuse reproduce: workflow complete in {time.perf_counter() - t0:.0f} s\n")
+    print(summary(results))
     return 0
 
 

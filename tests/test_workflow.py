@@ -1,0 +1,237 @@
+"""The Snakemake workflow: config schema, DAG shape, lint, profiles and a small end-to-end run.
+
+Every Snakemake call runs in a temporary working directory (``--directory``), so nothing is written
+into the repository's ``results/``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+from snakemake.cli import get_argument_parser
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
+
+from crashfuse import reproduce
+from crashfuse.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+SNAKEFILE = ROOT / "Snakefile"
+SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
+DEFAULT_CONFIG = ROOT / "config" / "config.yaml"
+TEST_CONFIG = ROOT / "config" / "test.yaml"
+CONDA_LINT = "Specify a conda environment or container for each rule."
+
+
+def snakemake(workdir: Path, *args: str, configfile: Path = DEFAULT_CONFIG, check: bool = True):
+    """Run this repository's workflow in ``workdir``; returns the CompletedProcess (stdout + stderr)."""
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), "--directory", str(workdir),
+           "--configfile", str(configfile), *args]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    if check and done.returncode:
+        raise AssertionError(f"snakemake {' '.join(args)} failed:\n{done.stdout}\n{done.stderr}")
+    return done
+
+
+def job_counts(output: str) -> dict[str, int]:
+    """The 'Job stats' table of a Snakemake run or dry run as {rule: count} (without the total)."""
+    block = output.split("Job stats:", 1)[1].split("total", 1)[0]
+    return {m[1]: int(m[2]) for m in re.finditer(r"^(\w+)\s+(\d+)\s*$", block, re.M)}
+
+
+def write_config(path: Path, **changes) -> Path:
+    """The default config with top-level ``changes``, written to ``path``."""
+    config = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    config.update(changes)
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+# --- config schema ------------------------------------------------------------------------------
+
+
+def test_default_config_is_the_schema_defaults():
+    """config/config.yaml spells out exactly what an empty config gets from the schema."""
+    empty, default = {}, yaml.safe_load(DEFAULT_CONFIG.read_text())
+    validate(empty, str(SCHEMA))
+    validate(default, str(SCHEMA))
+    assert empty == default
+
+
+def test_test_config_is_valid_and_small():
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    validate(config, str(SCHEMA))
+    assert config["method"]["seed"] == 0  # filled in by the schema
+    assert len(config["tests"]) * len(config["ks"]) * len(config["inputs"]) <= 6
+
+
+@pytest.mark.parametrize("bad, named", [
+    ({"ks": [0]}, "ks"),
+    ({"ks": []}, "ks"),
+    ({"ks": [1, 1]}, "ks"),
+    ({"inputs": ["paper", "velocity"]}, "velocity"),
+    ({"method": {"samples": 0}}, "samples"),
+    ({"method": {"assignment": "vote"}}, "assignment"),
+    ({"method": {"sample": 10}}, "sample"),
+    ({"campaign": {"path": ""}}, "path"),
+    ({"campaign": {"n_cae": 5}}, "n_cae"),
+    ({"tracking": {"uri": 3}}, "uri"),
+    ({"kss": [1]}, "kss"),
+])
+def test_bad_config_is_refused_naming_the_key(bad, named):
+    with pytest.raises(WorkflowError, match=re.escape(named)):
+        validate(bad, str(SCHEMA))
+
+
+def test_snakemake_refuses_a_bad_config_before_running(tmp_path):
+    done = snakemake(tmp_path, "-n", configfile=write_config(tmp_path / "c.yaml", ks=[0]), check=False)
+    assert done.returncode != 0
+    assert "0 is less than the minimum of 1" in done.stdout + done.stderr
+    assert "instance['ks'][0]" in done.stdout + done.stderr
+    assert not (tmp_path / "results").exists()
+
+
+def test_reproduce_reports_an_unreadable_config(tmp_path):
+    bad = tmp_path / "config.yaml"
+    bad.write_text("results: [unclosed\n")
+    with pytest.raises(InputError, match="YAML"):
+        reproduce.results_dir(bad, tmp_path)
+    assert reproduce.main(["--configfile", str(bad), "--workdir", str(tmp_path)]) == 2
+
+
+# --- DAG ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    """A working directory where the workflow has generated the default (paper) campaign."""
+    workdir = tmp_path_factory.mktemp("workflow")
+    before = job_counts(snakemake(workdir, "-n").stdout)
+    assert before["campaign"] == 1 and "fold" not in before  # the checkpoint decides the folds
+    snakemake(workdir, "--cores", "1", "--until", "campaign")
+    return workdir
+
+
+def test_default_dag_has_a_fold_per_test_k_and_input_mode(generated):
+    counts = job_counts(snakemake(generated, "-n").stdout)
+    conditions = pd.read_csv(generated / "results" / "paper" / "conditions.csv")
+    n_tests = int((conditions["source"] == "test").sum())
+    assert n_tests == 11
+    assert counts["fold"] == n_tests * 3 * 2
+    assert "fold_figure" not in counts
+    assert {counts[r] for r in ("prepare", "aggregate", "tables", "summary_figure", "track", "all")} == {1}
+    assert "campaign" not in counts
+
+
+def test_selected_tests_and_no_tracking(generated, tmp_path):
+    config = write_config(tmp_path / "c.yaml", tests=["T03", "T10"], ks=[2],
+                          tracking={"enabled": False})
+    counts = job_counts(snakemake(generated, "-n", configfile=config).stdout)
+    assert counts["fold"] == 2 * 1 * 2
+    assert "track" not in counts
+
+
+def test_config_naming_an_unknown_test_is_refused(generated, tmp_path):
+    config = write_config(tmp_path / "c.yaml", tests=["T03", "T99"])
+    done = snakemake(generated, "-n", configfile=config, check=False)
+    assert done.returncode != 0
+    assert "['T99'] are not tests of" in done.stdout + done.stderr
+
+
+def _conditions(folder: Path, tests: list[str]) -> Path:
+    rows = [dict(run_id=t, source="test", v0_mph=35, front_weight_lb=2000, rear_weight_lb=1500, powertrain="ICE",
+                 drive="FWD", cae_run_id=f"C{t}") for t in tests]
+    rows += [dict(run_id=f"C{t}", source="cae", v0_mph=35, front_weight_lb=2000, rear_weight_lb=1500,
+                  powertrain="ICE", drive="FWD", cae_run_id="") for t in tests]
+    folder.mkdir()
+    pd.DataFrame(rows).to_csv(folder / "conditions.csv", index=False)
+    return folder
+
+
+def test_user_campaign_folds_come_from_its_conditions(tmp_path):
+    """A campaign named in config: no generation, one fold per test x K x input mode, read at DAG build."""
+    campaign = _conditions(tmp_path / "lab", ["A1", "A2", "A3", "A4"])
+    config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)}, ks=[1, 2])
+    counts = job_counts(snakemake(tmp_path, "-n", configfile=config).stdout)
+    assert counts["fold"] == 4 * 2 * 2
+    assert "campaign" not in counts
+
+
+def test_user_campaign_with_one_test_is_refused(tmp_path):
+    campaign = _conditions(tmp_path / "lab", ["A1"])
+    config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)})
+    done = snakemake(tmp_path, "-n", configfile=config, check=False)
+    assert done.returncode != 0
+    assert "needs at least 2 tests, found 1" in done.stdout + done.stderr
+
+
+def test_lint_is_clean_except_the_conda_advice(tmp_path):
+    """The only lint is the conda/container advice: this workflow installs with pip (docs/workflow.md)."""
+    done = snakemake(tmp_path, "--lint", check=False)
+    lints = re.findall(r"^\s+\* (.+?):?$", done.stdout + done.stderr, re.M)
+    assert lints, "expected the conda advice at least (did --lint run?)"
+    assert set(lints) == {CONDA_LINT}
+
+
+# --- profiles -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("profile", ["local", "slurm"])
+def test_profile_keys_are_snakemake_options(profile):
+    settings = yaml.safe_load((ROOT / "workflow" / "profiles" / profile / "config.yaml").read_text())
+    options = {o for a in get_argument_parser()._actions for o in a.option_strings}
+    assert [k for k in settings if f"--{k}" not in options] == []
+
+
+def test_slurm_profile_targets_rules_of_this_workflow(tmp_path):
+    settings = yaml.safe_load((ROOT / "workflow" / "profiles" / "slurm" / "config.yaml").read_text())
+    assert settings["executor"] == "slurm"
+    rules = set(snakemake(tmp_path, "--list-rules").stdout.split())
+    assert set(settings["set-resources"]) <= rules
+
+
+# --- end to end -------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_end_to_end_on_the_test_config(tmp_path):
+    """`python -m crashfuse.reproduce` on config/test.yaml, then: nothing to redo; a changed setting
+    reruns only what depends on it."""
+    config = yaml.safe_load(TEST_CONFIG.read_text())
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}  # the embedded store
+    done = subprocess.run([sys.executable, "-m", "crashfuse.reproduce", "--configfile", str(TEST_CONFIG),
+                           "--workdir", str(tmp_path)], capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    results = tmp_path / config["results"]
+    iso = pd.read_csv(results / "iso_table.csv", dtype={"test_id": str})
+    assert sorted(iso["test_id"].unique()) == sorted(config["tests"])
+    assert sorted(iso["model"].unique()) == ["CAE"] + [f"K{k}" for k in config["ks"]]
+    assert len(iso) == len(config["tests"]) * len(config["inputs"]) * (1 + len(config["ks"])) * 3
+    assert iso["overall"].between(0, 1).all()
+    assert (results / "report.html").stat().st_size > 0
+    assert str(results / "report.html") in done.stdout
+    logged = json.loads((results / "tracking.json").read_text())
+    assert len(logged["folds"]) == len(config["tests"]) * len(config["ks"]) * len(config["inputs"])
+    assert logged["tracking_uri"] == f"sqlite:///{tmp_path / 'mlflow.db'}"
+
+    again = snakemake(tmp_path, "-n", configfile=TEST_CONFIG)
+    assert "Nothing to be done" in again.stdout + again.stderr
+
+    changed = dict(config, method={**config["method"], "samples": config["method"]["samples"] + 1})
+    (tmp_path / "changed.yaml").write_text(yaml.safe_dump(changed))
+    counts = job_counts(snakemake(tmp_path, "-n", configfile=tmp_path / "changed.yaml").stdout)
+    n_folds = len(config["tests"]) * len(config["ks"]) * len(config["inputs"])
+    assert counts["fold"] == n_folds and "prepare" not in counts and "campaign" not in counts
+
+    uri = dict(config, tracking={"enabled": True, "uri": f"sqlite:///{tmp_path / 'other.db'}"})
+    (tmp_path / "uri.yaml").write_text(yaml.safe_dump(uri))
+    counts = job_counts(snakemake(tmp_path, "-n", configfile=tmp_path / "uri.yaml").stdout)
+    assert set(counts) == {"track", "all"}

@@ -1,0 +1,92 @@
+# Paths, config checks and the fold list. Folds come from the campaign's tests: read from
+# conditions.csv when the DAG is built (a user campaign), or after the `campaign` checkpoint
+# has generated the campaign (the default).
+
+import csv
+import json
+import shlex
+import sys
+from pathlib import Path
+
+from snakemake.exceptions import WorkflowError
+
+# Jobs run the `crashfuse` of the environment running Snakemake, whether or not it is on PATH.
+shell.prefix(f'set -euo pipefail; export PATH={shlex.quote(str(Path(sys.executable).parent))}:"$PATH"; ')
+
+RESULTS = config["results"]
+GENERATED = config["campaign"]["path"] is None
+CAMPAIGN = f"{RESULTS}/paper" if GENERATED else config["campaign"]["path"]
+METHOD = config["method"]
+
+
+def method_args():
+    """The folds' method options; a param of their jobs, so that changing one reruns the folds."""
+    flags = [
+        f"--seed {METHOD['seed']}",
+        f"--n-grid {METHOD['n_grid']}",
+        f"--assignment {METHOD['assignment']}",
+        f"--samples {METHOD['samples']}",
+    ]
+    flags += ["--use-companion"] if METHOD["use_companion"] else []
+    flags += ["--extra-inputs"] if METHOD["extra_inputs"] else []
+    return " ".join(flags)
+
+
+def fold_dir(name=""):
+    """`<results>/folds/{inputs}-K{k}-{test}/<name>`: what one fold's `crashfuse evaluate` writes, wildcards kept."""
+    return f"{RESULTS}/folds/{{inputs}}-K{{k}}-{{test}}/{name}"
+
+
+def fold_path(name):
+    """A file of one fold beside its fold JSON: `crashfuse evaluate` nests them as <inputs>/K<k>/<test>/."""
+    return fold_dir(f"{{inputs}}/K{{k}}/{{test}}/{name}")
+
+
+def read_tests(campaign_dir):
+    """Test run_ids of a campaign folder, in file order, from its conditions.csv.
+
+    Raises WorkflowError naming the file and field when the file or its columns are missing, the
+    campaign has fewer than two tests, or config `tests` names a run that is not a test.
+    """
+    path = Path(campaign_dir) / "conditions.csv"
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.DictReader(fh))
+    except OSError as err:
+        raise WorkflowError(f"{path}: expected a campaign's conditions.csv ({err.strerror})")
+    if not rows or not {"run_id", "source"} <= set(rows[0]):
+        raise WorkflowError(f"{path}: expected columns run_id and source, got {list(rows[0]) if rows else 'no rows'}")
+    tests = [r["run_id"].strip() for r in rows if r["source"].strip().lower() == "test"]
+    wanted = config["tests"] or tests
+    unknown = [t for t in wanted if t not in tests]
+    if unknown:
+        raise WorkflowError(f"config tests: {unknown} are not tests of {path} (tests: {tests})")
+    if len(tests) < 2:
+        raise WorkflowError(f"{path}: field source: leave-one-test-out needs at least 2 tests, found {len(tests)}")
+    return wanted
+
+
+def campaign_dir(wildcards=None):
+    """The campaign folder; waits for the `campaign` checkpoint when the workflow generates it."""
+    if GENERATED:
+        return checkpoints.campaign.get().output.folder
+    return CAMPAIGN
+
+
+def fold_files(pattern):
+    """`pattern` expanded over every fold: config inputs x ks x the campaign's (selected) tests."""
+    tests = read_tests(campaign_dir())
+    return expand(pattern, inputs=config["inputs"], k=config["ks"], test=tests)
+
+
+def all_outputs(wildcards):
+    """The final targets: the table, its renderings, the summary figure and the tracking record."""
+    out = [
+        f"{RESULTS}/iso_table.csv",
+        f"{RESULTS}/tables/summary.md",
+        f"{RESULTS}/figures/iso_summary.png",
+    ]
+    out += fold_files(fold_path("{test}.png"))
+    if config["tracking"]["enabled"]:
+        out.append(f"{RESULTS}/tracking.json")
+    return out
