@@ -25,4 +25,5 @@ test: $(VENV)/.test
 	$(PY) -m pytest -q -n 2
 
 clean:
-	rm -rf $(VENV) .snakemake results/*/ results/*.csv
+	rm -rf $(VENV) .snakemake mlflow.db mlartifacts
+	find results -mindepth 1 -maxdepth 1 ! -name README.md -exec rm -rf {} +

@@ -62,7 +62,7 @@ def _world_generate(args) -> int:
     from crashfuse.world.presets import resolve
 
     design = resolve(args.preset, args.withhold, args.strength, parse_overrides(args.effect_param))
-    folder = generate(args.out, design, seed=args.seed)
+    folder = generate(args.out, design, seed=args.seed, **({} if args.n_cae is None else {"n_cae": args.n_cae}))
     print(f"wrote {folder} (preset {design.preset}, withheld {list(design.withheld)}, seed {args.seed})")
     return 0
 
@@ -145,6 +145,44 @@ def _evaluate(args) -> int:
     return 0
 
 
+def _aggregate(args) -> int:
+    from crashfuse.report import aggregate_iso_tables
+
+    frame = aggregate_iso_tables(args.tables, args.out)
+    print(f"wrote {args.out}: {len(frame)} rows")
+    return 0
+
+
+def _report(args) -> int:
+    from crashfuse.report import write_tables
+
+    for path in write_tables(args.iso_table, args.out, score=args.score):
+        print(f"wrote {path}")
+    return 0
+
+
+def _plot_summary(args) -> int:
+    from crashfuse.plots import plot_iso_summary
+
+    print(f"wrote {plot_iso_summary(args.iso_table, args.out, window=args.window, score=args.score)}")
+    return 0
+
+
+def _track(args) -> int:
+    from crashfuse.io.atomic import write_text
+    from crashfuse.tracking import log_evaluation
+
+    try:
+        config = json.loads(args.config_json) if args.config_json else None
+    except json.JSONDecodeError as err:
+        raise InputError(f"expected JSON: {err}", field="--config-json") from None
+    logged = log_evaluation(args.results, args.tracking_uri, config=config, project_dir=os.getcwd())
+    if args.out:
+        write_text(args.out, json.dumps(logged, indent=2, sort_keys=True) + "\n")
+    print(f"logged {len(logged['folds'])} folds to {logged['tracking_uri']} ({logged['experiment_name']})")
+    return 0
+
+
 def _positive(text: str) -> int:
     """argparse type: an integer >= 1."""
     try:
@@ -204,6 +242,7 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preset", default=None, help="paper (default) or withheld (needs --withhold)")
     s.add_argument("--withhold", default=None, help="effect the tests carry and the CAE does not, or none")
     s.add_argument("--strength", default="realistic", help="realistic (default) or subtle")
+    s.add_argument("--n-cae", type=_positive, default=None, help="Latin-hypercube CAE runs (default 1009)")
     s.add_argument("--effect-param", action="append", default=[], metavar="NAME=VALUE",
                    help="set an effect parameter in SI, e.g. damping.c=2000 (repeatable)")
     s.set_defaults(func=_world_generate)
@@ -263,6 +302,34 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=_seed, default=0, help="seed of the surrogate's fit (default 0)")
     s.add_argument("--out", required=True, help="surrogate file to write")
     s.set_defaults(func=_prepare)
+
+    s = sub.add_parser("aggregate", help="combine per-fold ISO tables into one iso_table.csv (CAE rows once)")
+    s.add_argument("tables", nargs="+", help="per-fold iso_table.csv files")
+    s.add_argument("--out", required=True, help="combined iso_table.csv")
+    s.set_defaults(func=_aggregate)
+
+    s = sub.add_parser("report", help="the paper's Table 2 (Markdown, LaTeX) and the summary from iso_table.csv")
+    s.add_argument("iso_table", help="iso_table.csv or the folder holding it")
+    s.add_argument("--out", required=True, help="output folder")
+    s.add_argument("--score", default="overall", help="score shown in Table 2 (default overall)")
+    s.set_defaults(func=_report)
+
+    s = sub.add_parser("plot", help="figures")
+    psub = s.add_subparsers(dest="plot_command", required=True, parser_class=_Parser)
+    s = psub.add_parser("summary", help="ISO score by test and K, per input mode")
+    s.add_argument("iso_table", help="iso_table.csv or the folder holding it")
+    s.add_argument("--window", default="0-60", help="window label, e.g. 0-60 (default)")
+    s.add_argument("--score", default="overall", help="score to plot (default overall)")
+    s.add_argument("--out", required=True, help="PNG file")
+    s.set_defaults(func=_plot_summary)
+
+    s = sub.add_parser("track", help="log an evaluation to MLflow (idempotent: runs keyed by tags)")
+    s.add_argument("results", help="results folder holding iso_table.csv and the fold JSON files")
+    s.add_argument("--tracking-uri", default=None, help="MLflow tracking URI (default: MLFLOW_TRACKING_URI, "
+                   "else sqlite:///mlflow.db in the working folder)")
+    s.add_argument("--config-json", default=None, help="the workflow config as JSON (hashed into a tag)")
+    s.add_argument("--out", default=None, help="write the logged run ids as JSON here")
+    s.set_defaults(func=_track)
     return p
 
 

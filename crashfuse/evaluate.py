@@ -26,6 +26,7 @@ from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
 from crashfuse.iso18571 import iso_score
 from crashfuse.model import INPUTS, fit_model
+from crashfuse.plots import fold_figure, save_png
 from crashfuse.report import SCORES, FoldRecord, write_fold_json
 from crashfuse.rollout import predict
 from crashfuse.surrogate import CAESurrogate
@@ -125,7 +126,7 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     records = {key: r["record"] for key, r in zip(keys, results)}
     result = Evaluation(iso, coverage, predictions, records, time.perf_counter() - t0)
     if out is not None:
-        write_evaluation(result, out)
+        write_evaluation(result, out, campaign)
     say(f"evaluate: done in {result.wall_time:.1f} s")
     return result
 
@@ -187,7 +188,7 @@ def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, fit_kw
                  "n_gps_loading": float(coverage["n_gps_loading"]),
                  "n_gps_unloading": float(coverage["n_gps_unloading"]),
                  "extrapolation": float(pred.extrapolation["any"])},
-        figures=[], prediction=f"{test_id}_prediction.csv",
+        figures=[f"{test_id}.png"], prediction=f"{test_id}_prediction.csv",
     )
     return {"iso": iso, "coverage": coverage, "frame": frame, "record": record}
 
@@ -274,11 +275,12 @@ def _cae_rows(campaign, surrogate, test_id, mode) -> list[dict]:
     return [_iso_row(test, t, a, test_id, mode, "CAE", w) for w in WINDOWS_MS]
 
 
-def write_evaluation(result: Evaluation, out: str | os.PathLike) -> Path:
+def write_evaluation(result: Evaluation, out: str | os.PathLike, campaign: Campaign) -> Path:
     """Write the evaluation into ``out``, each file atomically.
 
-    ``iso_table.csv``, ``coverage.csv``, and per fold ``<inputs>/K<k>/<test>/<test>_prediction.csv``
-    and ``<test>.fold.json``. Fold files come first, the tables last: a complete ``iso_table.csv``
+    ``iso_table.csv``, ``coverage.csv``, and per fold ``<inputs>/K<k>/<test>/`` with
+    ``<test>_prediction.csv``, ``<test>.png`` (test vs CAE vs corrected mean and band) and
+    ``<test>.fold.json``. Fold files come first, the tables last: a complete ``iso_table.csv``
     means a complete evaluation.
     """
     out = Path(out)
@@ -287,6 +289,9 @@ def write_evaluation(result: Evaluation, out: str | os.PathLike) -> Path:
     for key, frame in result.predictions.items():
         folder = fold_folder(out, *key)
         _write_csv(frame, folder / f"{key[2]}_prediction.csv")
+        test = campaign.pulses[key[2]].after_contact()
+        title = f"{key[2]}: {key[0]} inputs, K = {key[1][1:]}"
+        save_png(fold_figure(test, frame, title), folder / f"{key[2]}.png")
         write_fold_json(folder / f"{key[2]}.fold.json", result.records[key])
     _write_csv(result.coverage, out / "coverage.csv")
     _write_csv(result.iso_table, out / "iso_table.csv")

@@ -21,7 +21,7 @@ from typing import Any, Mapping
 import pandas as pd
 
 from crashfuse.errors import InputError
-from crashfuse.io.atomic import write_text
+from crashfuse.io.atomic import atomic_path, write_text
 
 ISO_TABLE = "iso_table.csv"
 KEYS = ("test_id", "inputs", "model", "window_ms")
@@ -285,6 +285,48 @@ def summary_markdown(frame: pd.DataFrame, digits: int = 3) -> str:
         scores = (_cell(getattr(row, s), digits) for s in SCORES)
         lines.append(_md_row([row.inputs, row.model, row.window_ms, str(row.n_tests), *scores]))
     return "\n".join(lines) + "\n"
+
+
+def aggregate_iso_tables(paths, out: str | os.PathLike) -> pd.DataFrame:
+    """Concatenate per-fold ISO tables into one, each CAE row once; write it atomically.
+
+    Every K of a test and input mode rates the same CAE pulse, so its CAE rows repeat across
+    fold tables; they must agree. Two different rows for one (test, inputs, model, window) are an
+    error.
+
+    Parameters
+    ----------
+    paths : sequence of str or PathLike
+        Per-fold ``iso_table.csv`` files (or folders holding one).
+    out : str or PathLike
+        The combined ``iso_table.csv``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The combined table, sorted by test, inputs, model and window.
+    """
+    frames = []
+    for path in paths:
+        path = Path(path) / ISO_TABLE if Path(path).is_dir() else Path(path)
+        try:
+            frames.append(pd.read_csv(path, dtype={k: str for k in KEYS}, keep_default_na=False))
+        except FileNotFoundError:
+            raise InputError("expected a per-fold ISO score table, but the file does not exist", path) from None
+    if not frames:
+        raise InputError("expected at least one per-fold ISO table", field="tables")
+    frame = pd.concat(frames, ignore_index=True).drop_duplicates()
+    clash = frame.duplicated(list(KEYS), keep=False)
+    if clash.any():
+        row = frame.loc[clash].iloc[0]
+        raise InputError(f"per-fold tables disagree on {tuple(row[list(KEYS)])}", paths[0], "overall")
+    order = frame.assign(_t=frame["test_id"].map(natural_key), _m=frame["model"].map(model_order),
+                         _w=frame["window_ms"].map(window_bounds))
+    frame = order.sort_values(["_t", "inputs", "_m", "_w"]).drop(columns=["_t", "_m", "_w"]).reset_index(drop=True)
+    with atomic_path(out) as tmp:
+        frame.to_csv(tmp, index=False, float_format="%.6g")
+    read_iso_table(out)  # the combined table obeys the contract
+    return frame
 
 
 def write_tables(iso_table: str | os.PathLike, out_dir: str | os.PathLike, score: str = "overall") -> list[Path]:

@@ -142,7 +142,7 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
                  str(surrogate), "--samples", "20", "--jobs", "1", "--n-grid", "40", "--out", str(out)]) == 0
     iso = pd.read_csv(out / "iso_table.csv")
     assert set(iso["test_id"]) == {"T08"} and set(iso["model"]) == {"CAE", "K1"}
-    assert sorted(p.name for p in (out / "paper" / "K1" / "T08").iterdir()) == ["T08.fold.json",
+    assert sorted(p.name for p in (out / "paper" / "K1" / "T08").iterdir()) == ["T08.fold.json", "T08.png",
                                                                                "T08_prediction.csv"]
     assert main(["evaluate", str(folder), "--k", "0", "--out", str(tmp_path / "x")]) == 2
     assert main(["evaluate", str(folder), "--k", "1", "--holdout", "C0001", "--out", str(tmp_path / "x")]) == 2

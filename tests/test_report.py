@@ -187,3 +187,32 @@ def test_read_fold_json_refuses_other_documents(tmp_path):
         report.read_fold_json(path)
     with pytest.raises(ValueError, match="fold.json"):
         report.write_fold_json(tmp_path / "a.json", fold_record())
+
+
+def _fold_table(path, test, k, cae=0.7, corrected=0.8):
+    rows = [dict(test_id=test, inputs="state", model=m, window_ms=w, overall=s, corridor=s, phase=s,
+                 magnitude=s, slope=s)
+            for m, s in (("CAE", cae), (f"K{k}", corrected)) for w in ("0-20", "0-40", "0-60")]
+    pd.DataFrame(rows).to_csv(path, index=False)
+    return path
+
+
+def test_aggregate_keeps_each_cae_row_once_and_sorts(tmp_path):
+
+
+    paths = [_fold_table(tmp_path / f"{t}{k}.csv", t, k) for t in ("T10", "T2") for k in (1, 2)]
+    frame = report.aggregate_iso_tables(paths, tmp_path / "iso_table.csv")
+    assert len(frame) == 2 * 3 * 3  # per test: CAE, K1, K2 x 3 windows
+    assert list(frame["test_id"].drop_duplicates()) == ["T2", "T10"]
+    assert list(frame["model"].drop_duplicates()) == ["CAE", "K1", "K2"]
+    assert report.read_iso_table(tmp_path / "iso_table.csv").shape[0] == 18
+
+
+def test_aggregate_refuses_fold_tables_that_disagree(tmp_path):
+
+
+    a = _fold_table(tmp_path / "a.csv", "T1", 1, cae=0.7)
+    b = _fold_table(tmp_path / "b.csv", "T1", 2, cae=0.6)
+    with pytest.raises(InputError, match="disagree"):
+        report.aggregate_iso_tables([a, b], tmp_path / "iso_table.csv")
+    assert not (tmp_path / "iso_table.csv").exists()
