@@ -16,6 +16,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
+from mlflow.tracking import MlflowClient
 from snakemake.cli import get_argument_parser
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
@@ -207,8 +208,10 @@ def test_end_to_end_on_the_test_config(tmp_path):
     reruns only what depends on it."""
     config = yaml.safe_load(TEST_CONFIG.read_text())
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}  # the embedded store
+    # 4 parallel jobs: folds run concurrently, the MLflow logging step must still lose nothing.
     done = subprocess.run([sys.executable, "-m", "crashfuse.reproduce", "--configfile", str(TEST_CONFIG),
-                           "--workdir", str(tmp_path)], capture_output=True, text=True, timeout=600, env=env)
+                           "--workdir", str(tmp_path), "--cores", "4"], capture_output=True, text=True, timeout=600,
+                          env=env)
     assert done.returncode == 0, done.stdout + done.stderr
     results = tmp_path / config["results"]
     iso = pd.read_csv(results / "iso_table.csv", dtype={"test_id": str})
@@ -221,6 +224,10 @@ def test_end_to_end_on_the_test_config(tmp_path):
     logged = json.loads((results / "tracking.json").read_text())
     assert len(logged["folds"]) == len(config["tests"]) * len(config["ks"]) * len(config["inputs"])
     assert logged["tracking_uri"] == f"sqlite:///{tmp_path / 'mlflow.db'}"
+    runs = MlflowClient(logged["tracking_uri"]).search_runs([logged["experiment_id"]])
+    n_parents = len(config["ks"]) * len(config["inputs"])
+    assert len(runs) == n_parents + len(logged["folds"])
+    assert sum(r.data.tags.get("crashfuse.role") == "fold" for r in runs) == len(logged["folds"])
 
     again = snakemake(tmp_path, "-n", configfile=TEST_CONFIG)
     assert "Nothing to be done" in again.stdout + again.stderr
