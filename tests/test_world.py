@@ -275,18 +275,36 @@ def test_resolve_rejects_unknown_names_directly():
         resolve(withhold="friction")
 
 
+def _imported_modules(path: Path, package: str) -> list[str]:
+    """Absolute names of every module ``path`` imports (relative imports resolved)."""
+    names = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")[: len(package.split(".")) - node.level + 1] if node.level else []
+            module = ".".join(base + ([node.module] if node.module else []))
+            names += [module] + [f"{module}.{a.name}" for a in node.names]
+    return names
+
+
+def test_import_scan_resolves_relative_imports(tmp_path):
+    src = tmp_path / "m.py"
+    src.write_text("from . import world\nfrom .world import presets\nfrom ..x import y\n")
+    names = _imported_modules(src, "crashfuse.sub")
+    assert "crashfuse.sub.world" in names and "crashfuse.sub.world.presets" in names and "crashfuse.x.y" in names
+    assert "crashfuse.world" in _imported_modules(src, "crashfuse")
+
+
 def test_nothing_outside_world_and_cli_imports_the_world():
     offenders = []
     for path in (REPO / "crashfuse").rglob("*.py"):
         rel = path.relative_to(REPO / "crashfuse")
         if rel.parts[0] == "world" or rel.as_posix() == "cli.py":
             continue
-        for node in ast.walk(ast.parse(path.read_text())):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
-            if isinstance(node, ast.ImportFrom):
-                names = [node.module or ""] + [f"{node.module}.{a.name}" for a in node.names]
-            if any(n == "crashfuse.world" or n.startswith("crashfuse.world.") for n in names):
-                offenders.append(rel.as_posix())
+        package = ".".join(("crashfuse", *rel.parent.parts))
+        if any(n == "crashfuse.world" or n.startswith("crashfuse.world.") for n in _imported_modules(path, package)):
+            offenders.append(rel.as_posix())
     assert not offenders
 
 
