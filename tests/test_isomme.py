@@ -97,7 +97,7 @@ def test_explicit_channels_and_engine(tmp_path):
 # --- synthetic folders ------------------------------------------------------------------
 
 
-@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=30, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(spec=mme_specs())
 def test_reader_recovers_a_synthetic_test(tmp_path_factory, spec: MMESpec):
     w = write_mme(tmp_path_factory.mktemp("mme"), spec)
