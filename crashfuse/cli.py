@@ -42,13 +42,9 @@ def _pulse_metrics(args) -> int:
 
 
 def _iso_score(args) -> int:
-    from crashfuse.io.campaign import read_pulse_csv
-    from crashfuse.iso18571 import iso_score
-    from crashfuse.units import MS
+    from crashfuse.iso18571 import score_files
 
-    t_ref, ref = read_pulse_csv(args.test)
-    t_cmp, cmp_ = read_pulse_csv(args.prediction)
-    scores = iso_score(t_ref, ref, t_cmp, cmp_, start=args.start_ms * MS, end=args.end_ms * MS)
+    scores = score_files(args.test, args.prediction, args.start_ms, args.end_ms)
     if args.json:
         _print_json(scores)
     else:

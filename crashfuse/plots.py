@@ -21,7 +21,8 @@ from matplotlib.figure import Figure
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path
 from crashfuse.pulse import Pulse
-from crashfuse.report import BASELINE, INPUTS, SCORES, model_order, natural_key, read_iso_table, table2
+from crashfuse.report import (BASELINE, INPUTS, SCORES, model_order, natural_key, read_iso_table, table2, table_file,
+                              window_bounds)
 from crashfuse.units import G0, MS
 
 PREDICTION_COLUMNS = ("time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g")
@@ -176,10 +177,12 @@ def iso_summary_figure(frame: pd.DataFrame, window: str = "0-60", score: str = "
         each model's mean over the tests.
     """
     if score not in SCORES:
-        raise ValueError(f"expected a score in {SCORES}, got {score!r}")
+        raise InputError(f"expected a score in {SCORES}, got {score!r}", table_file(frame), "--score")
     rows = frame[frame["window_ms"] == window]
     if rows.empty:
-        raise ValueError(f"no rows with window_ms {window!r}")
+        windows = sorted(frame["window_ms"].unique(), key=window_bounds)
+        raise InputError(f"expected a window_ms label of the table {windows}, got {window!r}", table_file(frame),
+                         "--window")
     modes = [m for m in INPUTS if (rows["inputs"] == m).any()]
     tests = sorted(rows["test_id"].unique(), key=natural_key)
     models = sorted(rows["model"].unique(), key=model_order)

@@ -8,6 +8,7 @@ with t = 0 at first contact; samples are uniform and strictly increasing.
 from __future__ import annotations
 
 import dataclasses
+import os
 from typing import Any
 
 import numpy as np
@@ -20,6 +21,50 @@ MIN_SAMPLES = 16
 MAX_DECEL = 500 * G0
 MAX_SPEED = 100.0
 SOURCES = ("test", "cae")
+
+
+def check_samples(time, decel, where: str | os.PathLike | None = None,
+                  fields: tuple[str, str] = ("time", "decel")) -> None:
+    """Check the samples of a pulse: enough, finite, uniform and increasing in time, plausible in size.
+
+    Parameters
+    ----------
+    time : ndarray, shape (n,)
+        Sample times in s.
+    decel : ndarray, shape (n,)
+        Deceleration in m/s^2.
+    where : str or path-like, optional
+        The file the samples came from, named in the error.
+    fields : (str, str)
+        Names of the time and deceleration fields in that file (e.g. CSV columns), named in the error.
+
+    Raises
+    ------
+    InputError
+        Naming ``where`` and the field at fault. Samples are counted from 1, as the data rows of a CSV.
+    """
+    t, a = np.asarray(time, dtype=float), np.asarray(decel, dtype=float)
+    time_field, decel_field = fields
+    if t.ndim != 1 or a.ndim != 1 or t.shape != a.shape:
+        raise InputError(f"expected two 1-D arrays of equal length, got shapes {t.shape} and {a.shape}", where,
+                         f"{time_field}/{decel_field}")
+    if t.size < MIN_SAMPLES:
+        raise InputError(f"expected at least {MIN_SAMPLES} samples, got {t.size}", where, time_field)
+    for name, arr in ((time_field, t), (decel_field, a)):
+        bad = np.flatnonzero(~np.isfinite(arr))
+        if bad.size:
+            raise InputError(f"expected finite numbers, found {arr[bad[0]]} at sample {bad[0] + 1}", where, name)
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        i = int(np.flatnonzero(dt <= 0)[0])
+        raise InputError(f"expected strictly increasing time, but sample {i + 2} ({t[i + 1]:.6g} s) does not follow "
+                         f"sample {i + 1} ({t[i]:.6g} s)", where, time_field)
+    if np.ptp(dt) > 1e-3 * dt.mean() + 1e-12:
+        raise InputError(f"expected uniform sampling, step varies from {dt.min():.6g} to {dt.max():.6g} s", where,
+                         time_field)
+    peak = np.abs(a).max()
+    if peak > MAX_DECEL:
+        raise InputError(f"peak {peak / G0:.0f} g exceeds {MAX_DECEL / G0:.0f} g: wrong units?", where, decel_field)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -67,22 +112,7 @@ class Pulse:
         raise InputError(message, self.where, field)
 
     def _validate(self, t: np.ndarray, a: np.ndarray) -> None:
-        if t.ndim != 1 or a.ndim != 1 or t.shape != a.shape:
-            self._fail("time/decel", f"expected two 1-D arrays of equal length, got shapes {t.shape} and {a.shape}")
-        if t.size < MIN_SAMPLES:
-            self._fail("time", f"expected at least {MIN_SAMPLES} samples, got {t.size}")
-        for name, arr in (("time", t), ("decel", a)):
-            bad = np.flatnonzero(~np.isfinite(arr))
-            if bad.size:
-                self._fail(name, f"expected finite numbers, found {arr[bad[0]]} at sample {bad[0]}")
-        dt = np.diff(t)
-        if np.any(dt <= 0):
-            i = int(np.flatnonzero(dt <= 0)[0])
-            self._fail("time", f"expected strictly increasing time, but t[{i + 1}]={t[i + 1]} <= t[{i}]={t[i]}")
-        if np.ptp(dt) > 1e-3 * dt.mean() + 1e-12:
-            self._fail("time", f"expected uniform sampling, step varies from {dt.min():.6g} to {dt.max():.6g} s")
-        if np.abs(a).max() > MAX_DECEL:
-            self._fail("decel", f"peak {np.abs(a).max() / G0:.0f} g exceeds {MAX_DECEL / G0:.0f} g: wrong units?")
+        check_samples(t, a, self.where)
         if not (0 < self.v0 <= MAX_SPEED) or not np.isfinite(self.v0):
             self._fail("v0", f"expected an impact speed in (0, {MAX_SPEED}] m/s, got {self.v0}")
         for name in ("front_weight", "rear_weight"):

@@ -36,6 +36,7 @@ CONDITIONS = ("v0_mps", "front_weight_kg", "rear_weight_kg", "powertrain", "driv
 _MODEL = re.compile(r"K([1-9][0-9]*)")
 _WINDOW = re.compile(r"([0-9]+)-([0-9]+)")
 _NATURAL = re.compile(r"([0-9]+)")
+_SOURCE = "source"  # frame.attrs key: the file a table was read from, to locate errors found later
 
 
 # --- labels ------------------------------------------------------------------------------------
@@ -122,7 +123,13 @@ def read_iso_table(path: str | os.PathLike) -> pd.DataFrame:
         row = frame.loc[dup].iloc[0]
         raise InputError(f"expected one row per test, inputs, model and window; repeated {tuple(row[list(KEYS)])}",
                          path, "test_id")
+    frame.attrs[_SOURCE] = os.fspath(path)
     return frame
+
+
+def table_file(frame: pd.DataFrame) -> str | None:
+    """The file an ISO table (or a selection of its rows) was read from by `read_iso_table`; None if built."""
+    return frame.attrs.get(_SOURCE)
 
 
 def _check_labels(frame: pd.DataFrame, path: Path) -> None:
@@ -177,10 +184,10 @@ def table2(frame: pd.DataFrame, inputs: str, score: str = "overall") -> pd.DataF
         the windows in order of start then end. A missing cell is NaN.
     """
     if score not in SCORES:
-        raise ValueError(f"expected a score in {SCORES}, got {score!r}")
+        raise InputError(f"expected a score in {SCORES}, got {score!r}", table_file(frame), "--score")
     rows = frame[frame["inputs"] == inputs]
     if rows.empty:
-        raise ValueError(f"no rows with inputs {inputs!r}")
+        raise InputError(f"expected rows with inputs {inputs!r}, found none", table_file(frame), "inputs")
     wide = rows.pivot(index=["test_id", "model"], columns="window_ms", values=score)
     order = sorted(wide.index, key=lambda tm: (natural_key(tm[0]), model_order(tm[1])))
     windows = sorted(wide.columns, key=window_bounds)
@@ -305,21 +312,23 @@ def aggregate_iso_tables(paths, out: str | os.PathLike) -> pd.DataFrame:
     -------
     pandas.DataFrame
         The combined table, sorted by test, inputs, model and window.
+
+    Raises
+    ------
+    InputError
+        A table that `read_iso_table` refuses, or one whose row disagrees with another table's
+        (naming the later file and the first differing column).
     """
-    frames = []
-    for path in paths:
-        path = Path(path) / ISO_TABLE if Path(path).is_dir() else Path(path)
-        try:
-            frames.append(pd.read_csv(path, dtype={k: str for k in KEYS}, keep_default_na=False))
-        except FileNotFoundError:
-            raise InputError("expected a per-fold ISO score table, but the file does not exist", path) from None
+    frames = [read_iso_table(path) for path in paths]
     if not frames:
         raise InputError("expected at least one per-fold ISO table", field="tables")
-    frame = pd.concat(frames, ignore_index=True).drop_duplicates()
-    clash = frame.duplicated(list(KEYS), keep=False)
+    files = pd.concat([pd.Series(table_file(f), index=f.index) for f in frames], ignore_index=True)
+    frame = pd.concat(frames, ignore_index=True)
+    keep = ~frame.duplicated()
+    frame, files = frame[keep], files[keep]
+    clash = frame.duplicated(list(KEYS))  # a row that differs from an earlier one with the same keys
     if clash.any():
-        row = frame.loc[clash].iloc[0]
-        raise InputError(f"per-fold tables disagree on {tuple(row[list(KEYS)])}", paths[0], "overall")
+        _disagreement(frame, files, frame.index[clash][0])
     order = frame.assign(_t=frame["test_id"].map(natural_key), _m=frame["model"].map(model_order),
                          _w=frame["window_ms"].map(window_bounds))
     frame = order.sort_values(["_t", "inputs", "_m", "_w"]).drop(columns=["_t", "_m", "_w"]).reset_index(drop=True)
@@ -327,6 +336,21 @@ def aggregate_iso_tables(paths, out: str | os.PathLike) -> pd.DataFrame:
         frame.to_csv(tmp, index=False, float_format="%.6g")
     read_iso_table(out)  # the combined table obeys the contract
     return frame
+
+
+def _disagreement(frame: pd.DataFrame, files: pd.Series, row) -> None:
+    """Raise for ``row``, which repeats the keys of an earlier row of another table with other values."""
+    key = frame.loc[row, list(KEYS)]
+    first = frame.index[(frame[list(KEYS)] == key).all(axis=1)][0]
+    key = tuple(key)
+    columns = [c for c in frame.columns if not _same(frame.at[first, c], frame.at[row, c])]
+    col = columns[0]
+    raise InputError(f"disagrees with {files[first]} on {key}: {col} {frame.at[row, col]} against "
+                     f"{frame.at[first, col]}", files[row], col)
+
+
+def _same(a, b) -> bool:
+    return a == b or (pd.isna(a) and pd.isna(b))
 
 
 def write_tables(iso_table: str | os.PathLike, out_dir: str | os.PathLike, score: str = "overall") -> list[Path]:

@@ -9,9 +9,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from crashfuse import filters
 from crashfuse.errors import InputError
 from crashfuse.io import campaign as cmod
 from crashfuse.io.campaign import (Campaign, read_campaign, read_pulse_csv, write_campaign, write_pulse_csv)
+from crashfuse.io.nhtsa import read_nhtsa
 from crashfuse.io.loading import load_pulses
 from crashfuse.pulse import Pulse
 
@@ -117,7 +119,6 @@ def test_extra_columns_are_kept_and_typed(tmp_path):
 
 
 def test_cfc_column_and_filtering(tmp_path):
-    filters = pytest.importorskip("crashfuse.filters")
     header = HEADER.removesuffix(",cae_run_id") + ",cfc"
     rng = np.random.default_rng(0)
     t, a = half_sine(15.0, n=600)
@@ -225,6 +226,18 @@ def test_write_refuses_non_empty_folder_unless_overwrite(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o755), (0o077, 0o700)])
+def test_written_folders_get_the_permissions_mkdir_gives(tmp_path, umask, mode):
+    old = os.umask(umask)
+    try:
+        write_campaign(small_campaign(), tmp_path / "new")
+        write_campaign(small_campaign(), tmp_path / "new", overwrite=True)  # the swapped-in copy too
+    finally:
+        os.umask(old)
+    for folder in (tmp_path / "new", tmp_path / "new" / "pulses"):
+        assert folder.stat().st_mode & 0o777 == mode, folder
+
+
 def test_write_failure_leaves_nothing_half_written(tmp_path, monkeypatch):
     calls = []
 
@@ -278,7 +291,6 @@ def nhtsa_campaign(root: Path, v0_kmh="57.09") -> Path:
 
 @needs_nhtsa
 def test_pulse_path_reads_real_nhtsa_test(tmp_path):
-    pytest.importorskip("crashfuse.io.nhtsa")
     c = read_campaign(nhtsa_campaign(tmp_path / "camp"))
     p = c.pulses["T10146"]
     assert p.meta["cfc"] == 60 and p.time[0] == pytest.approx(0, abs=0.5 * p.dt)
@@ -298,7 +310,6 @@ def test_pulse_path_reads_real_nhtsa_test(tmp_path):
 
 @needs_nhtsa
 def test_pulse_path_row_conditions_win_with_warning(tmp_path):
-    pytest.importorskip("crashfuse.io.nhtsa")
     p = read_campaign(nhtsa_campaign(tmp_path, v0_kmh="60")).pulses["T10146"]
     assert p.v0 == pytest.approx(60 * KMH_MPS)
     assert any(w.startswith("v0") for w in p.meta["warnings"])
@@ -306,7 +317,6 @@ def test_pulse_path_row_conditions_win_with_warning(tmp_path):
 
 @pytest.mark.skipif(not ISOMME.is_dir(), reason="shared ISO-MME data absent")
 def test_pulse_path_reads_isomme_with_row_weights(tmp_path):
-    pytest.importorskip("crashfuse.io.isomme")
     rel = os.path.relpath(ISOMME, tmp_path)
     header = "run_id,source,v0_kmh,front_weight_kg,rear_weight_kg,powertrain,drive,pulse_path"
     write_folder(tmp_path, [f"M,test,57.09,961,758,ICE,FWD,{rel}"], header)
@@ -317,12 +327,13 @@ def test_pulse_path_reads_isomme_with_row_weights(tmp_path):
 
 @needs_nhtsa
 def test_load_pulses_dispatches_on_folder_content(tmp_path):
-    pytest.importorskip("crashfuse.io.nhtsa")
     write_folder(tmp_path / "camp", VALID_ROWS)
     assert [p.run_id for p in load_pulses(tmp_path / "camp")] == ["T1", "C1", "C2"]
     assert [p.run_id for p in load_pulses(tmp_path / "camp" / "conditions.csv")] == ["T1", "C1", "C2"]
-    raw = load_pulses(NHTSA, cfc=None)
-    assert len(raw) == 1 and raw[0].meta["cfc"] is None and raw[0].time[0] >= 0
+    (raw,) = load_pulses(NHTSA, cfc=None)
+    full = read_nhtsa(NHTSA)  # unfiltered and uncropped: pulse_metrics filters before it crops
+    assert raw.meta["cfc"] is None and raw.time[0] < 0
+    assert np.array_equal(raw.time, full.time) and np.array_equal(raw.decel, full.decel)
     assert load_pulses(NHTSA / "v10146.EV5")[0].meta["cfc"] == 60
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "x.txt").write_text("x")

@@ -68,21 +68,11 @@ def campaign(root: Path, pulse: str, conditions: str | None = None) -> Path:
     return root
 
 
-@pytest.fixture
-def metrics():
-    pytest.importorskip("crashfuse.metrics")
-
-
-@pytest.fixture
-def iso():
-    pytest.importorskip("crashfuse.iso18571")
-
-
 # --- pulse-metrics ----------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("case", BAD_PULSES, ids=list(BAD_PULSES))
-def test_pulse_metrics_bad_pulse_file(tmp_path, capsys, metrics, case):
+def test_pulse_metrics_bad_pulse_file(tmp_path, capsys, case):
     text, field, words = BAD_PULSES[case]
     root = campaign(tmp_path / "camp", text)
     run_cli(capsys, ["pulse-metrics", root], tmp_path, words, "C1.csv", field)
@@ -98,13 +88,13 @@ CONDITIONS = {
 
 
 @pytest.mark.parametrize("case", CONDITIONS, ids=list(CONDITIONS))
-def test_pulse_metrics_bad_conditions(tmp_path, capsys, metrics, case):
+def test_pulse_metrics_bad_conditions(tmp_path, capsys, case):
     text, field, words = CONDITIONS[case]
     root = campaign(tmp_path / "camp", GOOD, text)
     run_cli(capsys, ["pulse-metrics", root], tmp_path, words, "conditions.csv", field)
 
 
-def test_pulse_metrics_missing_folder_and_pulse_file(tmp_path, capsys, metrics):
+def test_pulse_metrics_missing_folder_and_pulse_file(tmp_path, capsys):
     run_cli(capsys, ["pulse-metrics", tmp_path / "nope"], tmp_path, "does not exist", "nope", None)
     (tmp_path / "empty").mkdir()
     run_cli(capsys, ["pulse-metrics", tmp_path / "empty"], tmp_path, "expected a campaign folder", "empty", None)
@@ -113,7 +103,7 @@ def test_pulse_metrics_missing_folder_and_pulse_file(tmp_path, capsys, metrics):
     run_cli(capsys, ["pulse-metrics", root], tmp_path, "missing pulse file", "C1.csv", None)
 
 
-def test_pulse_metrics_good_campaign_succeeds(tmp_path, capsys, metrics):
+def test_pulse_metrics_good_campaign_succeeds(tmp_path, capsys):
     # The same helpers produce a campaign the CLI accepts, so the failures above are the broken rule.
     root = campaign(tmp_path / "camp", GOOD)
     assert main(["pulse-metrics", str(root), "--json"]) == 0
@@ -128,7 +118,6 @@ def ev5_copy(tmp_path):
     """Header plus the two default crossmember channels of test 10146, copied into tmp_path."""
     if not NHTSA.is_dir():
         pytest.skip("shared NHTSA data absent")
-    pytest.importorskip("crashfuse.io.nhtsa")
     folder = tmp_path / "v10146"
     folder.mkdir()
     for name in ("v10146.EV5", "v10146.093", "v10146.094"):
@@ -136,18 +125,18 @@ def ev5_copy(tmp_path):
     return folder
 
 
-def test_ev5_copy_is_readable(ev5_copy, capsys, metrics):
+def test_ev5_copy_is_readable(ev5_copy, capsys):
     assert main(["pulse-metrics", str(ev5_copy)]) == 0
     capsys.readouterr()
 
 
-def test_ev5_truncated_header(ev5_copy, tmp_path, capsys, metrics):
+def test_ev5_truncated_header(ev5_copy, tmp_path, capsys):
     header = ev5_copy / "v10146.EV5"
     header.write_text("".join(header.read_text().splitlines(keepends=True)[:7]))
     run_cli(capsys, ["pulse-metrics", ev5_copy], tmp_path, "INSTRUMENTATION", "v10146.EV5", None)
 
 
-def test_ev5_wrong_column_count(ev5_copy, tmp_path, capsys, metrics):
+def test_ev5_wrong_column_count(ev5_copy, tmp_path, capsys):
     channel = ev5_copy / "v10146.093"
     channel.write_text("".join(line.rstrip("\n") + "\t0\n" for line in channel.read_text().splitlines()))
     run_cli(capsys, ["pulse-metrics", ev5_copy], tmp_path, "column", "v10146.093", None)
@@ -158,7 +147,7 @@ def test_ev5_wrong_column_count(ev5_copy, tmp_path, capsys, metrics):
 
 @pytest.mark.parametrize("case", BAD_PULSES, ids=list(BAD_PULSES))
 @pytest.mark.parametrize("position", ["test", "prediction"])
-def test_iso_score_bad_pulse_file(tmp_path, capsys, iso, case, position):
+def test_iso_score_bad_pulse_file(tmp_path, capsys, case, position):
     text, field, words = BAD_PULSES[case]
     (tmp_path / "good.csv").write_text(GOOD)
     (tmp_path / "bad.csv").write_text(text)
@@ -166,14 +155,23 @@ def test_iso_score_bad_pulse_file(tmp_path, capsys, iso, case, position):
     run_cli(capsys, ["iso-score", *(tmp_path / f for f in files)], tmp_path, words, "bad.csv", field)
 
 
-def test_iso_score_missing_file(tmp_path, capsys, iso):
+@pytest.mark.parametrize("position", ["test", "prediction"])
+def test_iso_score_curve_short_of_the_window_names_its_file(tmp_path, capsys, position):
+    # Valid pulse files, but one ends at 49.9 ms, before the default 0-60 ms window does.
+    (tmp_path / "good.csv").write_text(GOOD)
+    (tmp_path / "short.csv").write_text(pulse_text(T[:500], A[:500]))
+    files = ["short.csv", "good.csv"] if position == "test" else ["good.csv", "short.csv"]
+    field = "reference time" if position == "test" else "compared signal time"
+    run_cli(capsys, ["iso-score", *(tmp_path / f for f in files)], tmp_path, "does not cover", "short.csv", field)
+
+
+def test_iso_score_missing_file(tmp_path, capsys):
     (tmp_path / "good.csv").write_text(GOOD)
     run_cli(capsys, ["iso-score", tmp_path / "good.csv", tmp_path / "nope.csv"], tmp_path, "does not exist",
             "nope.csv", None)
 
 
 def test_installed_command_exit_code_and_single_line(tmp_path):
-    pytest.importorskip("crashfuse.iso18571")
     if not CRASHFUSE.exists():
         pytest.skip("crashfuse console script not installed in this environment")
     (tmp_path / "good.csv").write_text(GOOD)

@@ -6,8 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crashfuse.cli import main
 from crashfuse.errors import InputError
-from crashfuse.iso18571 import iso_score, iso_score_many, rate
+from crashfuse.iso18571 import iso_score, iso_score_many, rate, score_files
 
 KEYS = ("overall", "corridor", "phase", "magnitude", "slope")
 DT = 1e-4  # the standard's 10 kHz, written out here rather than imported
@@ -325,9 +326,6 @@ def test_rate_rejects_mismatched_grids():
 
 
 def test_cli_iso_score_prints_the_scores(tmp_path, capsys):
-    pytest.importorskip("crashfuse.io.campaign")
-    from crashfuse.cli import main
-
     t = np.arange(801) * DT
     paths = []
     for name, decel in (("test.csv", half_sine(t)), ("pred.csv", haversine(t, 0.075, 310, 1 * ms))):
@@ -340,3 +338,21 @@ def test_cli_iso_score_prints_the_scores(tmp_path, capsys):
     assert printed == pytest.approx(expected, abs=1e-9)
     assert main(["iso-score", *paths, "--end-ms", "100"]) == 2
     assert "cover" in capsys.readouterr().err
+
+
+def test_score_files_locates_errors_at_the_curve_at_fault(tmp_path):
+    t = np.arange(801) * DT
+    files = {}
+    for name, decel in (("flat.csv", np.zeros_like(t)), ("pulse.csv", half_sine(t)), ("short.csv", half_sine(t))):
+        keep = slice(0, 500) if name == "short.csv" else slice(None)  # short ends at 49.9 ms
+        files[name] = tmp_path / name
+        np.savetxt(files[name], np.column_stack([t[keep], decel[keep] / G]), delimiter=",",
+                   header="time_s,decel_g", comments="")
+    assert score_files(files["pulse.csv"], files["pulse.csv"]) == pytest.approx(dict.fromkeys(KEYS, 1.0))
+    with pytest.raises(InputError, match="constant") as err:
+        score_files(files["flat.csv"], files["pulse.csv"])
+    assert err.value.file == str(files["flat.csv"])
+    with pytest.raises(InputError, match="cover") as err:
+        score_files(files["pulse.csv"], files["short.csv"], 0.0, 60.0)
+    assert (err.value.file, err.value.field) == (str(files["short.csv"]), "compared signal time")
+    assert score_files(files["pulse.csv"], files["short.csv"], 10.0, 40.0)["corridor"] == pytest.approx(1.0)

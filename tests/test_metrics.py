@@ -8,6 +8,8 @@ import pytest
 from scipy import integrate, signal
 
 from crashfuse import Pulse
+from crashfuse.cli import main
+from crashfuse.io.nhtsa import read_nhtsa
 from crashfuse.metrics import occupant_load_criterion, pulse_metrics
 from crashfuse.units import G0, KMH
 
@@ -129,9 +131,17 @@ def test_real_test_10146_matches_an_independent_computation():
 
 @needs_nhtsa
 def test_real_test_10146_through_the_ev5_reader():
-    nhtsa = pytest.importorskip("crashfuse.io.nhtsa")
     t, decel = _v10146_raw()
     want = pulse_metrics(Pulse(time=t, decel=decel, v0=V0_10146, front_weight=961.0, rear_weight=758.0))
-    got = pulse_metrics(nhtsa.read_nhtsa(V10146))
+    got = pulse_metrics(read_nhtsa(V10146))
     for key, tol in TOLERANCE.items():
         assert got[key] == pytest.approx(want[key], abs=tol), key
+
+
+@needs_nhtsa
+def test_cli_pulse_metrics_rates_the_full_raw_record(capsys, monkeypatch):
+    # The CLI must hand pulse_metrics the record as read (pre-impact lead-in included), not a
+    # record cropped at contact before filtering. Run from the repo root, as a user would.
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    assert main(["pulse-metrics", "../shared/data/nhtsa/v10146", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == [pulse_metrics(read_nhtsa(V10146))]

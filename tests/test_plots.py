@@ -12,6 +12,7 @@ import pytest
 from matplotlib.collections import PolyCollection
 
 from crashfuse import Pulse, plots
+from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.report import read_iso_table
 
@@ -157,8 +158,18 @@ def test_iso_summary_bars_are_the_table_scores(tmp_path):
         assert labels[0] == f"CAE (mean {mean_cae:.3f})"
     path = plots.plot_iso_summary(tmp_path, tmp_path / "summary.png")
     assert png_chunks(path.read_bytes())[0][0] == b"IHDR"
-    with pytest.raises(ValueError, match="window_ms"):
+    with pytest.raises(InputError, match="window_ms"):
         plots.iso_summary_figure(frame, window="0-80")
+
+
+@pytest.mark.parametrize("option, value", [("--window", "0-80"), ("--score", "bogus")])
+def test_bad_summary_option_through_the_cli_names_the_table(tmp_path, capsys, option, value):
+    table = iso_table(tmp_path)
+    out = tmp_path / "summary.png"
+    assert main(["plot", "summary", str(table), "--out", str(out), option, value]) == 2
+    err = capsys.readouterr().err
+    assert f"{table}: field '{option}'" in err and value in err
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("edit, field", [

@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 
 from crashfuse import InputError, Pulse
+from crashfuse.io.campaign import read_pulse_csv
+from crashfuse.pulse import check_samples
 from crashfuse.units import G0
 
 
@@ -55,3 +57,22 @@ def test_input_error_renders_one_line():
     assert str(e) == "a/b.csv: field 'v0_mph': expected a number"
     assert "\n" not in str(e)
     assert InputError("x").at("f.csv").file == "f.csv"
+
+
+def test_csv_reader_and_pulse_share_the_sample_checks(tmp_path):
+    # Time repeats at data rows 10 and 11: both the Pulse type and the CSV reader say so, the
+    # reader naming its file and columns; samples count from 1 like the CSV's data rows.
+    t = np.r_[np.arange(10), np.arange(9, 199)] * 1e-4
+    decel = np.zeros(200)
+    path = tmp_path / "p.csv"
+    path.write_text("time_s,decel_mps2\n" + "".join(f"{float(x)!r},0\n" for x in t))
+    with pytest.raises(InputError) as from_pulse:
+        _pulse(time=t, decel=decel)
+    with pytest.raises(InputError) as from_csv:
+        read_pulse_csv(path)
+    assert from_csv.value.message == from_pulse.value.message
+    assert "sample 11 (0.0009 s) does not follow sample 10" in from_csv.value.message
+    assert (from_csv.value.file, from_csv.value.field) == (str(path), "time_s")
+    with pytest.raises(InputError) as err:
+        check_samples(np.arange(200) * 1e-4, np.full(200, 600 * G0), path, ("time_s", "decel_g"))
+    assert (err.value.file, err.value.field) == (str(path), "decel_g") and "wrong units" in err.value.message

@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 from crashfuse import report
+from crashfuse.cli import main
 from crashfuse.errors import InputError
 
 SCORES = ["overall", "corridor", "phase", "magnitude", "slope"]
@@ -198,8 +199,6 @@ def _fold_table(path, test, k, cae=0.7, corrected=0.8):
 
 
 def test_aggregate_keeps_each_cae_row_once_and_sorts(tmp_path):
-
-
     paths = [_fold_table(tmp_path / f"{t}{k}.csv", t, k) for t in ("T10", "T2") for k in (1, 2)]
     frame = report.aggregate_iso_tables(paths, tmp_path / "iso_table.csv")
     assert len(frame) == 2 * 3 * 3  # per test: CAE, K1, K2 x 3 windows
@@ -209,10 +208,29 @@ def test_aggregate_keeps_each_cae_row_once_and_sorts(tmp_path):
 
 
 def test_aggregate_refuses_fold_tables_that_disagree(tmp_path):
-
-
     a = _fold_table(tmp_path / "a.csv", "T1", 1, cae=0.7)
     b = _fold_table(tmp_path / "b.csv", "T1", 2, cae=0.6)
-    with pytest.raises(InputError, match="disagree"):
-        report.aggregate_iso_tables([a, b], tmp_path / "iso_table.csv")
+    c = _fold_table(tmp_path / "c.csv", "T1", 3, cae=0.7)
+    with pytest.raises(InputError, match="disagree") as err:
+        report.aggregate_iso_tables([a, c, b], tmp_path / "iso_table.csv")
+    assert (err.value.file, err.value.field) == (str(b), "overall")  # the odd one out, not the first file
+    assert str(a) in err.value.message
     assert not (tmp_path / "iso_table.csv").exists()
+
+
+def test_aggregate_validates_every_fold_table(tmp_path):
+    a = _fold_table(tmp_path / "a.csv", "T1", 1)
+    b = _fold_table(tmp_path / "b.csv", "T1", 2)
+    b.write_text(b.read_text().replace(",K2,", ",K0,"))  # not a model label read_iso_table accepts
+    with pytest.raises(InputError) as err:
+        report.aggregate_iso_tables([a, b], tmp_path / "iso_table.csv")
+    assert (err.value.file, err.value.field) == (str(b), "model")
+    assert not (tmp_path / "iso_table.csv").exists()
+
+
+def test_bad_score_through_the_cli_names_the_table_and_option(tmp_path, capsys):
+    path = write_csv(tmp_path, paper_frame())
+    assert main(["report", str(path), "--out", str(tmp_path / "out"), "--score", "bogus"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: field '--score'" in err and "bogus" in err
+    assert not (tmp_path / "out").exists()

@@ -17,15 +17,24 @@ def atomic_path(path: str | os.PathLike):
     os.close(fd)
     try:
         yield Path(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
+        os.chmod(tmp, default_mode())  # mkstemp makes 0600; outputs get the usual permissions
         os.replace(tmp, path)
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
 
 
+def default_mode(directory: bool = False) -> int:
+    """The permissions ``open`` or ``mkdir`` would give a new file or folder under the current umask.
+
+    ``tempfile.mkstemp`` and ``mkdtemp`` create 0600 and 0700; outputs built in them are
+    chmod-ed to this before they take their final name.
+    """
+    return (0o777 if directory else 0o666) & ~_umask()
+
+
 def _umask() -> int:
-    mask = os.umask(0)
+    mask = os.umask(0)  # the only way to read the umask; restored at once
     os.umask(mask)
     return mask
 

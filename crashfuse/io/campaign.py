@@ -24,8 +24,8 @@ import pandas as pd
 
 from crashfuse import units
 from crashfuse.errors import InputError
-from crashfuse.io.atomic import atomic_path
-from crashfuse.pulse import MAX_DECEL, MAX_SPEED, MIN_SAMPLES, SOURCES, Pulse
+from crashfuse.io.atomic import atomic_path, default_mode
+from crashfuse.pulse import MAX_SPEED, SOURCES, Pulse, check_samples
 
 CONDITIONS = "conditions.csv"
 PULSES = "pulses"
@@ -62,7 +62,8 @@ class Campaign:
         rear_weight_kg, powertrain, drive``, optionally ``cae_run_id`` (a test's companion CAE run)
         and ``pulse_path`` (an EV5 or ISO-MME folder relative to ``root``), plus any extra column.
     pulses : dict of str to Pulse
-        The pulse of every run, keyed by run_id, in SI from first contact on.
+        The pulse of every run, keyed by run_id, in SI (from first contact on as `read_campaign`
+        leaves filtered pulses).
     root : Path or None
         The folder the campaign was read from (resolves ``pulse_path``); None if built in memory.
     """
@@ -182,7 +183,7 @@ def read_pulse_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     decel_col = _unit_column(frame.columns, "decel", units.ACCEL, path)
     t = _numbers(frame[time_col], path, time_col)
     a = _numbers(frame[decel_col], path, decel_col) * units.ACCEL[decel_col.removeprefix("decel_")]
-    _check_samples(t, a, path, time_col, decel_col)
+    check_samples(t, a, path, (time_col, decel_col))
     return t, a
 
 
@@ -211,23 +212,6 @@ def _write_pulse(path: Path, time_s, decel_mps2, unit: str) -> None:
     np.savetxt(path, data, fmt=FLOAT_FORMAT, delimiter=",", header=f"time_s,decel_{unit}", comments="")
 
 
-def _check_samples(t: np.ndarray, a: np.ndarray, path: Path, time_col: str, decel_col: str) -> None:
-    if t.size < MIN_SAMPLES:
-        raise InputError(f"expected at least {MIN_SAMPLES} samples, got {t.size}", path, time_col)
-    dt = np.diff(t)
-    if np.any(dt <= 0):
-        i = int(np.flatnonzero(dt <= 0)[0])
-        raise InputError(f"expected strictly increasing time, but data row {i + 2} ({t[i + 1]:.6g} s) does not "
-                         f"follow row {i + 1} ({t[i]:.6g} s)", path, time_col)
-    if np.ptp(dt) > 1e-3 * dt.mean() + 1e-12:
-        raise InputError(f"expected uniform sampling, step varies from {dt.min():.6g} to {dt.max():.6g} s",
-                         path, time_col)
-    peak = np.abs(a).max()
-    if peak > MAX_DECEL:
-        raise InputError(f"peak {peak / units.G0:.0f} g exceeds {MAX_DECEL / units.G0:.0f} g: wrong units?",
-                         path, decel_col)
-
-
 # --- reading a campaign ----------------------------------------------------------------------
 
 
@@ -240,12 +224,14 @@ def read_campaign(folder: str | os.PathLike, cfc: int | None = DEFAULT_CFC) -> C
         Folder with ``conditions.csv`` and ``pulses/``.
     cfc : int or None
         SAE J211 channel frequency class applied to raw pulses (EV5, unfiltered ISO-MME, CSV rows
-        with ``cfc = raw``); None keeps them raw. Processed pulses are never filtered again.
+        with ``cfc = raw``) before cropping at first contact; None keeps every pulse as read,
+        pre-impact samples included. Processed pulses are never filtered again.
 
     Returns
     -------
     Campaign
-        Conditions in SI with canonical column names and one Pulse per run from first contact on.
+        Conditions in SI with canonical column names and one Pulse per run (from first contact on
+        unless ``cfc`` is None).
 
     Raises
     ------
@@ -467,7 +453,7 @@ def _meta(row: dict) -> dict:
 
 
 def _load_run(root: Path, conditions: Path, row: dict, row_cfc, cfc) -> Pulse:
-    """The pulse of one conditions row, in SI, filtered if raw and cropped at first contact."""
+    """The pulse of one conditions row, in SI, as `prepare_pulse` leaves it."""
     meta = _meta(row)
     fields = dict(v0=row["v0_mps"], front_weight=row["front_weight_kg"], rear_weight=row["rear_weight_kg"],
                   run_id=row["run_id"], source=row["source"])
@@ -529,12 +515,15 @@ def _has(folder: Path, suffix: str) -> bool:
 
 
 def prepare_pulse(pulse: Pulse, cfc: int | None) -> Pulse:
-    """Filter a raw pulse (if asked), crop it at first contact and check it is physically plausible."""
+    """Filter a raw pulse and crop it at first contact if ``cfc`` is given; check it is physically plausible.
+
+    With ``cfc`` None the record is returned whole, pre-impact samples included, because whoever
+    filters it later (e.g. `crashfuse.metrics.pulse_metrics`) needs them as lead-in.
+    """
     if cfc is not None:
         from crashfuse.filters import filter_pulse  # filters only raw or lighter-class pulses
 
-        pulse = filter_pulse(pulse, cfc)
-    pulse = pulse.after_contact()
+        pulse = filter_pulse(pulse, cfc).after_contact()
     if pulse.time[0] > 0.5 * pulse.dt:
         raise InputError(f"expected t = 0 at first contact, but the pulse starts at {pulse.time[0] * 1e3:.6g} ms",
                          pulse.where, "time_s")
@@ -592,6 +581,7 @@ def write_campaign(campaign: Campaign, folder: str | os.PathLike, speed_unit: st
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
     try:
         _write_into(campaign, tmp, folder, speed_unit, mass_unit, accel_unit)
+        tmp.chmod(default_mode(directory=True))  # mkdtemp makes 0700; the folder gets the usual permissions
         _swap_in(tmp, folder)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

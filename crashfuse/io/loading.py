@@ -14,14 +14,16 @@ EXPECTED = (f"expected a campaign folder ({CONDITIONS} + pulses/), an NHTSA EV5 
 
 
 def load_pulses(path: str | os.PathLike, cfc: int | None = DEFAULT_CFC) -> list[Pulse]:
-    """The pulses of a campaign, NHTSA EV5 or ISO-MME folder, in SI from first contact on.
+    """The pulses of a campaign, NHTSA EV5 or ISO-MME folder, in SI.
 
     Parameters
     ----------
     path : path-like
         The folder, or a file in it (``conditions.csv``, ``*.EV5``, ``*.mme``).
     cfc : int or None
-        SAE J211 channel frequency class applied to raw pulses; None keeps them raw.
+        SAE J211 channel frequency class applied to raw pulses, which are then cropped at first
+        contact; None keeps every record whole, pre-impact samples included (what
+        `crashfuse.metrics.pulse_metrics` needs, as it filters before cropping).
 
     Returns
     -------
