@@ -21,13 +21,17 @@ from sklearn.utils import check_random_state
 from threadpoolctl import ThreadpoolController
 from sklearn.utils.validation import check_array, check_is_fitted, check_X_y
 
-__all__ = ["KrigingGP", "GMMGPBias"]
+__all__ = ["KrigingGP", "GMMGPBias", "TooFewPointsError"]
 
 _TRENDS = ("constant", "linear")
 _CHUNK = 2048  # prediction points per block: bounds the (n_train, chunk) work arrays
 _JITTERS = 10.0 ** np.arange(-12, -3)  # relative jitters tried, in order, for joint draws
 _SEED_MAX = 2**31 - 1
 _FAILED = 1e300  # objective value where K is not numerically positive definite
+
+
+class TooFewPointsError(ValueError):
+    """Fewer bias points than :class:`GMMGPBias` needs for its clusters and their GP parameters."""
 
 
 @functools.cache
@@ -590,8 +594,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         self.n_features_in_ = X.shape[1]
         need = self._min_points(X.shape[1])
         if len(y) < max(need, self.n_clusters):
-            raise ValueError(f"GMMGPBias needs at least {max(need, self.n_clusters)} bias points "
-                             f"(min_cluster_points={need}, n_clusters={self.n_clusters}), got {len(y)}")
+            raise TooFewPointsError(f"GMMGPBias needs at least {max(need, self.n_clusters)} bias points "
+                                    f"(min_cluster_points={need}, n_clusters={self.n_clusters}), got {len(y)}")
         rng = check_random_state(self.random_state)
         C = self._cluster_view(X, fit=True)
         self.gmm_ = GaussianMixture(self.n_clusters, covariance_type="full", n_init=self.n_init,

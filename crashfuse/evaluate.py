@@ -25,16 +25,16 @@ from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
 from crashfuse.iso18571 import iso_score
-from crashfuse.model import INPUTS, fit_model
+from crashfuse.model import fit_model
 from crashfuse.plots import fold_figure, save_png
-from crashfuse.report import SCORES, FoldRecord, write_fold_json
+from crashfuse.projection import INPUTS
+from crashfuse.report import (BASELINE, COLUMNS, SCORES, WINDOWS, FoldRecord, model_label, window_bounds,
+                              write_fold_json)
 from crashfuse.rollout import predict
 from crashfuse.surrogate import CAESurrogate
 from crashfuse.units import G0, MS
 
-WINDOWS_MS = ((0, 20), (0, 40), (0, 60))
 COVERAGE_WINDOW_MS = (0, 60)
-ISO_COLUMNS = ["test_id", "inputs", "model", "window_ms", "overall", "corridor", "phase", "magnitude", "slope"]
 COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "n_points", "extrapolation", "n_gps_loading",
                     "n_gps_unloading", "cluster_switches", "fit_s", "predict_s"]
 
@@ -46,7 +46,7 @@ class Evaluation:
     Attributes
     ----------
     iso_table : DataFrame
-        Columns ``ISO_COLUMNS``; one row per test, input mode, model (CAE, K1, ...) and window.
+        Columns :data:`crashfuse.report.COLUMNS`; one row per test, input mode, model (CAE, K1, ...) and window.
     coverage : DataFrame
         Columns ``COVERAGE_COLUMNS``: per fold, the fraction of held-out test points in 0-60 ms inside
         the 95 % band, the extrapolation flag, the GPs per branch, how often the selected GP changes
@@ -119,7 +119,7 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
             f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
             f"fit {cov['fit_s']:.1f} s")
     cae_rows = [row for t in tests for mode in inputs for row in _cae_rows(campaign, surrogate, t, mode)]
-    iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=ISO_COLUMNS)
+    iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=list(COLUMNS))
     coverage = pd.DataFrame([res["coverage"] for res in results], columns=COVERAGE_COLUMNS)
     keys = [(r["coverage"]["inputs"], r["coverage"]["model"], r["coverage"]["test_id"]) for r in results]
     predictions = {key: r["frame"] for key, r in zip(keys, results)}
@@ -167,8 +167,8 @@ def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, fit_kw
                    test.meta.get("drive"), n_samples=n_samples, random_state=random_state,
                    duration=float(test.time[-1]), dt=test.dt)
     t2 = time.perf_counter()
-    name = f"K{k}"
-    iso = [_iso_row(test, pred.time, pred.decel, test_id, mode, name, w) for w in WINDOWS_MS]
+    name = model_label(k)
+    iso = [_iso_row(test, pred.time, pred.decel, test_id, mode, name, w) for w in WINDOWS]
     frame = pred.frame()
     frame["test_decel_g"] = np.interp(pred.time, test.time, test.decel) / G0
     cov, n = band_coverage(test.time, test.decel, pred.time, pred.decel_lo, pred.decel_hi)
@@ -255,9 +255,10 @@ def band_coverage(t_test, a_test, t_pred, lo, hi, window_ms=COVERAGE_WINDOW_MS) 
     return float(ok.mean()), int(ok.size)
 
 
-def _iso_row(test, t_cmp, cmp, test_id, mode, name, window) -> dict:
-    s = iso_score(test.time, test.decel, t_cmp, cmp, window[0] * MS, window[1] * MS)
-    return dict(test_id=test_id, inputs=mode, model=name, window_ms=f"{window[0]}-{window[1]}", **s)
+def _iso_row(test, t_cmp, cmp, test_id, mode, name, window: str) -> dict:
+    start, end = window_bounds(window)
+    s = iso_score(test.time, test.decel, t_cmp, cmp, start * MS, end * MS)
+    return dict(test_id=test_id, inputs=mode, model=name, window_ms=window, **s)
 
 
 def _cae_rows(campaign, surrogate, test_id, mode) -> list[dict]:
@@ -272,7 +273,7 @@ def _cae_rows(campaign, surrogate, test_id, mode) -> list[dict]:
                                 test.meta.get("drive"))
         traj = curve.rollout(test.dt, test.time.size - 1)
         t, a = traj.time, traj.decel[0]
-    return [_iso_row(test, t, a, test_id, mode, "CAE", w) for w in WINDOWS_MS]
+    return [_iso_row(test, t, a, test_id, mode, BASELINE, w) for w in WINDOWS]
 
 
 def write_evaluation(result: Evaluation, out: str | os.PathLike, campaign: Campaign) -> Path:

@@ -19,19 +19,16 @@ import pickle
 import numpy as np
 
 import crashfuse
-from crashfuse.bias import GMMGPBias
+from crashfuse.bias import _SEED_MAX, GMMGPBias, TooFewPointsError
 from crashfuse.dynamics import Trajectory
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
-from crashfuse.projection import BiasData, bias_data, bias_inputs
+from crashfuse.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs
 from crashfuse.surrogate import CAECurve, CAESurrogate
 
 FORMAT = 1
-INPUTS = ("paper", "state")
-BRANCHES = ("loading", "unloading")
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
-_SEED_MAX = 2**31 - 1
 _MATCH_RTOL = 1e-6  # a condition "is" a test's when v0 and both masses agree to this
 _REACH_TOL = 0.02  # crush or rebound up to 2 % beyond the bias data is not flagged (thinning, rounding)
 
@@ -278,7 +275,7 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
         At prediction, use a test's companion CAE run directly when the condition is that test's
         (the bias data always pair each test with its companion run).
     random_state : int
-        Seeds the surrogate and both bias models.
+        Seeds the surrogate (as is, like :func:`crashfuse.evaluate.evaluate`) and both bias models.
     surrogate : CAESurrogate, optional
         Already fitted on this campaign's CAE runs (shared across folds; it sees no test data).
     **bias_params
@@ -301,12 +298,12 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     train = [t for t in campaign.tests if t not in held]
     if not train:
         raise InputError("no training test left after the holdout", campaign.root, "--holdout")
-    seeds = np.random.RandomState(random_state).randint(_SEED_MAX, size=3)
-    if surrogate is None:
-        surrogate = CAESurrogate(random_state=int(seeds[0])).fit(campaign)
+    if surrogate is None:  # seeded as evaluate and `crashfuse prepare` do: fit --holdout T is T's fold
+        surrogate = CAESurrogate(random_state=random_state).fit(campaign)
     data = bias_data(campaign, train, inputs, extra_inputs, n_grid, surrogate=surrogate, use_companion=True)
+    seeds = np.random.RandomState(random_state).randint(_SEED_MAX, size=len(BRANCHES))
     bias = {b: _fit_branch(data, b, k, assignment, int(seed), bias_params, campaign.root)
-            for b, seed in zip(BRANCHES, seeds[1:])}
+            for b, seed in zip(BRANCHES, seeds)}
     settings = dict(k=int(k), inputs=inputs, assignment=assignment, extra_inputs=bool(extra_inputs),
                     n_grid=n_grid, use_companion=bool(use_companion), random_state=random_state,
                     holdout=sorted(held), bias_params=dict(bias_params))
@@ -348,7 +345,7 @@ def _fit_branch(data: BiasData, branch: str, k: int, assignment: str, seed: int,
     est = GMMGPBias(n_clusters=k, assignment=assignment, random_state=seed, **params)
     try:
         return est.fit(d.X, d.y)
-    except ValueError as err:  # too few points for K and the GP parameters (GMMGPBias's own check)
+    except TooFewPointsError as err:  # too few points for K and the GP parameters
         raise InputError(f"{branch} branch, {d.y.size} bias points from {len(set(d.groups))} tests: {err}",
                          root, "--k") from None
 

@@ -36,9 +36,9 @@ import pandas as pd
 from crashfuse.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
 from crashfuse.metrics import occupant_load_criterion
+from crashfuse.projection import BRANCHES
 from crashfuse.units import G0, KMH, MM, MS
 
-BRANCHES = ("loading", "unloading")
 BAND = (2.5, 97.5)  # percent: the 95 % band
 N_X = 160  # grid points per branch coordinate for the joint draws
 N_V = 16  # velocity grid points of the state-mode mean table
@@ -267,7 +267,8 @@ def _positive_int(value, field):
 def _grid_ends(model, curve, cae: Trajectory) -> dict:
     """End of each branch's grid (m): beyond the bias data, the CAE curve and the CAE rollout."""
     s_reach = max(model.x_max("loading"), float(curve.s_max), float(cae.s_max[0]))
-    u_cae = float(np.max(cae.s_max[0] - cae.s[0]))
+    contact = cae.branch[0] == Trajectory.UNLOADING  # after separation u grows in free flight
+    u_cae = float(np.max(cae.s_max[0] - cae.s[0][contact], initial=0.0))
     u_curve = 0.0 if curve.u is None else float(curve.u[-1])
     u_reach = max(model.x_max("unloading"), u_curve, u_cae)
     return {"loading": GRID_MARGIN * s_reach, "unloading": GRID_MARGIN * max(u_reach, 1e-3)}

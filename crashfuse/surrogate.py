@@ -36,7 +36,7 @@ from sklearn.base import BaseEstimator, clone
 from sklearn.utils import check_random_state
 from sklearn.utils.validation import check_is_fitted
 
-from crashfuse.bias import KrigingGP
+from crashfuse.bias import _SEED_MAX, KrigingGP
 from crashfuse.domain import Branches, displacement_branches
 from crashfuse.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
@@ -46,7 +46,6 @@ from crashfuse.pulse import Pulse
 
 SEPARATION = 0.02  # unloading ends where the decel first falls to 2 % of its value at maximum crush
 CATEGORIES = ("powertrain", "drive")
-_SEED_MAX = 2**31 - 1
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -107,10 +106,17 @@ class CAECurve:
         Returns
         -------
         CAECurve
+
+        Raises
+        ------
+        InputError
+            If the run never stops and its loading branch, continued with its last stiffness,
+            cannot absorb ``v0^2 / 2`` (no maximum crush; names the run and its file).
         """
         br = displacement_branches(pulse)
         load = br.loading
-        s_max = br.s_max if br.stopped else _energy_stop(load.x, load.decel, pulse.v0)
+        s_max = br.s_max if br.stopped else _energy_stop(load.x, load.decel, pulse.v0, f"CAE run {pulse.run_id}",
+                                                             pulse.where)
         unload = (*_unloading_to_separation(br), "run") if br.stopped and _separation(br) is not None else None
         if unload is None and unloading_from is not None and unloading_from.u is not None:
             unload = (unloading_from.u, unloading_from.a_unloading, "stand-in")
@@ -282,6 +288,11 @@ class CAESurrogate(BaseEstimator):
         CAECurve
             Loading on ``s_grid_`` (continued by the last stiffness beyond ``s_grid_[-1]``),
             unloading on ``w_grid_ * u_end``, ``s_max`` from the energy balance.
+
+        Raises
+        ------
+        InputError
+            On a bad condition, or a predicted curve that cannot absorb ``v0^2 / 2`` (field ``v0``).
         """
         check_is_fitted(self)
         x = self._features_one(v0, front_weight, rear_weight, {"powertrain": powertrain, "drive": drive})
@@ -290,7 +301,7 @@ class CAESurrogate(BaseEstimator):
         u_scores = np.array([gp.predict(x)[0] for gp in self.unload_gps_])
         a_unload = np.maximum(self.unload_mean_ + u_scores[:-1] @ self.unload_components_, 0.0)
         u_end = float(np.exp(u_scores[-1]))
-        s_max = _energy_stop(self.s_grid_, a_load, v0)
+        s_max = _energy_stop(self.s_grid_, a_load, v0, f"surrogate curve at v0 = {v0:.4g} m/s")
         return CAECurve(self.s_grid_, a_load, self.w_grid_ * u_end, a_unload, s_max, u_end, float(v0))
 
     # --------------------------------------------------------------------------- features
@@ -442,10 +453,27 @@ def _continued_unloading(u: np.ndarray, a: np.ndarray):
     return np.append(u, u[-1] + a[-1] / -k), np.append(a, 0.0), "continued"
 
 
-def _energy_stop(s: np.ndarray, a: np.ndarray, v0: float) -> float:
+def _energy_stop(s: np.ndarray, a: np.ndarray, v0: float, what: str, file: str | None = None) -> float:
     """Displacement (m) where the work ``int a ds`` (trapezoid) reaches ``v0^2 / 2``.
 
-    Beyond ``s[-1]`` the curve is continued with its last stiffness (as :meth:`CAECurve.loading`).
+    Beyond ``s[-1]`` the curve is continued with its last stiffness (as :meth:`CAECurve.loading`),
+    clipped at 0: a falling tail absorbs at most ``a_end^2 / (2 |k|)`` before the decel reaches 0.
+
+    Parameters
+    ----------
+    s, a : ndarray, shape (k,)
+        Displacements (m, increasing) and decelerations (m/s^2) of the loading branch.
+    v0 : float
+        Impact speed in m/s.
+    what : str
+        The curve, for the error message (e.g. ``"CAE run C012"``).
+    file : str, optional
+        The file it came from, for the error message.
+
+    Raises
+    ------
+    InputError
+        If the curve (with its continued tail) cannot absorb the impact energy.
     """
     need = 0.5 * v0 * v0
     work = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(s))])
@@ -453,10 +481,17 @@ def _energy_stop(s: np.ndarray, a: np.ndarray, v0: float) -> float:
         i = int(np.searchsorted(work, need))
         return float(s[i - 1] + (s[i] - s[i - 1]) * (need - work[i - 1]) / (work[i] - work[i - 1]))
     k, a_end, rest = _end_slope(s, a), max(float(a[-1]), 0.0), need - work[-1]
-    if a_end <= 0 and k <= 0:
-        raise InputError(f"the CAE curve stops decelerating at {s[-1]:.3g} m before absorbing the impact energy "
-                         f"(v0 = {v0:.3g} m/s): outside the CAE data", field="v0")
-    # rest = a_end d + k d^2 / 2 for the extra travel d.
+    # rest = a_end d + k d^2 / 2 for the extra travel d. A falling tail reaches 0 (and stays there) after
+    # absorbing a_end^2 / (2 |k|); a flat tail at 0 absorbs nothing.
+    if k < 0:
+        tail_work = a_end**2 / (-2 * k)
+    else:
+        tail_work = np.inf if k > 0 or a_end > 0 else 0.0
+    if rest > tail_work:
+        raise InputError(f"{what}: the CAE curve stops decelerating beyond {s[-1]:.3g} m before absorbing the "
+                         f"impact energy (v0 = {v0:.3g} m/s needs {need:.4g} J/kg, the curve and its continued "
+                         f"tail give {work[-1] + tail_work:.4g}); expected a curve that brings the vehicle to "
+                         "rest: outside the CAE data", file=file, field="v0")
     d = rest / a_end if abs(k) < 1e-12 else (-a_end + np.sqrt(a_end**2 + 2 * k * rest)) / k
     return float(s[-1] + d)
 

@@ -9,7 +9,7 @@ from sklearn.base import clone
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, DotProduct, WhiteKernel
 
-from crashfuse.bias import GMMGPBias, KrigingGP
+from crashfuse.bias import GMMGPBias, KrigingGP, TooFewPointsError
 
 
 def _oracle_loglik(eta, Z, u, trend):
@@ -346,7 +346,7 @@ def test_components_without_points_get_no_gp():
 
 def test_too_few_points_raises():
     X, y = _two_regime_data()
-    with pytest.raises(ValueError, match="at least"):
+    with pytest.raises(TooFewPointsError, match="at least"):
         GMMGPBias(n_clusters=2, trend="linear").fit(X[:20], y[:20])
 
 

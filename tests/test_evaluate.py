@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pandas as pd
 import pytest
 
 import crashfuse.evaluate as ev
+import crashfuse.model
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import write_campaign
 from crashfuse.iso18571 import iso_score
 from crashfuse.model import fit_model
 from crashfuse.report import read_fold_json
+from crashfuse.rollout import predict
 from crashfuse.surrogate import CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
@@ -57,6 +61,22 @@ def test_no_fold_sees_its_held_out_test(campaign, surrogate, monkeypatch):
         assert held not in model.groups["loading"] + model.groups["unloading"]
         assert set(model.groups["loading"]) == set(KEEP) - {held}
         assert model.surrogate is surrogate  # fitted once on CAE runs, shared
+
+
+def test_fit_with_a_holdout_reproduces_the_evaluate_fold(campaign, monkeypatch):
+    # One seeding rule: `fit --seed S --holdout T` (surrogate fitted inside) is evaluate's fold for T.
+    # A random restart makes the surrogate depend on its seed (with none it is deterministic).
+    restarting = functools.partial(CAESurrogate, n_restarts=1)
+    monkeypatch.setattr(ev, "CAESurrogate", restarting)
+    monkeypatch.setattr(crashfuse.model, "CAESurrogate", restarting)
+    fold = ev.evaluate(campaign, ks=[1], inputs=["paper"], holdout="T05", n_samples=5, random_state=3, n_jobs=1,
+                       progress=None, **FAST)
+    model = fit_model(campaign, 1, inputs="paper", holdout="T05", random_state=3, **FAST)
+    test = campaign.pulses["T05"].after_contact()
+    pred = predict(model, test.v0, test.front_weight, test.rear_weight, test.meta["powertrain"],
+                   test.meta["drive"], n_samples=5, random_state=3, duration=float(test.time[-1]), dt=test.dt)
+    pd.testing.assert_frame_equal(fold.predictions[("paper", "K1", "T05")].drop(columns="test_decel_g"),
+                                  pred.frame())
 
 
 def test_iso_table_contract(result):

@@ -14,6 +14,8 @@ from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.iso18571 import iso_score
 from crashfuse.model import fit_model, load_model
+import crashfuse.rollout as rollout_module
+from crashfuse.dynamics import Trajectory
 from crashfuse.rollout import predict
 from crashfuse.surrogate import CAESurrogate
 from crashfuse.world.generate import build, generate
@@ -135,6 +137,24 @@ def test_same_seed_same_prediction_and_outputs_are_complete(campaign, model):
                               "rebound_kmh", "olc_g"}
 
 
+def test_unloading_grid_ignores_free_flight_after_separation(campaign, model, monkeypatch):
+    # After separation u = s_max - s keeps growing; the 160-point unloading grid must span the
+    # unloading (contact) travel only, or its resolution is spent where no unloading force acts.
+    seen = []
+    real = rollout_module._grid_ends
+    monkeypatch.setattr(rollout_module, "_grid_ends", lambda m, c, cae: seen.append((c, cae, real(m, c, cae)))
+                        or seen[-1][2])
+    t = campaign.pulses["T06"]
+    predict(model, t.v0, t.front_weight, t.rear_weight, t.meta["powertrain"], t.meta["drive"], n_samples=3,
+            random_state=0, duration=0.2, dt=t.dt)
+    curve, cae, ends = seen[0]
+    u = cae.s_max[0] - cae.s[0]
+    contact = cae.branch[0] == Trajectory.UNLOADING
+    assert (cae.branch[0] == Trajectory.SEPARATED).any() and u.max() > 2 * u[contact].max()
+    reach = max(model.x_max("unloading"), float(curve.u[-1]), u[contact].max())
+    assert ends["unloading"] == pytest.approx(rollout_module.GRID_MARGIN * reach)
+
+
 def test_state_inputs_predict(campaign, surrogate):
     m = fit_model(campaign, 2, inputs="state", holdout="T07", surrogate=surrogate, **FAST)
     assert m.columns["loading"][:2] == ("x_m", "v_mps")
@@ -174,6 +194,14 @@ def test_fit_errors(campaign, surrogate):
     assert err.value.field == "--k"
 
 
+def test_fit_reports_only_too_few_points_as_bad_k(campaign, surrogate):
+    # A fault that is not about K (here a bad GP setting, caught inside KrigingGP) must surface as
+    # itself, not as an input error on --k.
+    with pytest.raises(ValueError, match="trend must be one of") as err:
+        fit_model(campaign, 1, surrogate=surrogate, trend="cubic", **FAST)
+    assert not isinstance(err.value, InputError)
+
+
 def test_model_file_errors(tmp_path, model):
     with pytest.raises(InputError, match="no such model file"):
         load_model(tmp_path / "missing.pkl")
@@ -190,9 +218,10 @@ def test_cli_fit_predict_round_trip(tmp_path, capsys):
     assert main(["fit", str(folder), "--k", "1", "--holdout", "T02", "--n-grid", "40", "--out", str(model_file)]) == 0
     out = tmp_path / "pred.csv"
     # T02's condition in report units (Table 1: 12.1 mph is 5.409 m/s).
-    argv = ["predict", str(model_file), "--v0-mph", str(5.409184 / MPH), "--front-weight-lb",
-            str(981.437811 / LB), "--rear-weight-lb", str(722.527286 / LB), "--powertrain", "Type II",
-            "--drive", "AWD", "--samples", "40", "--seed", "3", "--out", str(out), "--json"]
+    v0_mph, wf_lb, wr_lb = str(5.409184 / MPH), str(981.437811 / LB), str(722.527286 / LB)
+    argv = ["predict", str(model_file), "--v0-mph", v0_mph, "--front-weight-lb", wf_lb, "--rear-weight-lb", wr_lb,
+            "--powertrain", "Type II", "--drive", "AWD", "--samples", "40", "--seed", "3", "--out", str(out),
+            "--json"]
     capsys.readouterr()
     assert main(argv) == 0
     report = json.loads(capsys.readouterr().out)
@@ -200,7 +229,10 @@ def test_cli_fit_predict_round_trip(tmp_path, capsys):
     frame = pd.read_csv(out)
     assert list(frame.columns[:5]) == ["time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g"]
     m = load_model(model_file)
-    again = predict(m, 5.409184, 981.437811, 722.527286, "Type II", "AWD", n_samples=40, random_state=3)
+    # The same SI condition as the CLI's (the lb text round trip can move a mass by one ulp, and the
+    # joint draws on the fine unloading grid are not smooth in the condition at that level).
+    again = predict(m, float(v0_mph) * MPH, float(wf_lb) * LB, float(wr_lb) * LB, "Type II", "AWD", n_samples=40,
+                    random_state=3)
     np.testing.assert_allclose(frame["decel_g"], again.decel / G, rtol=1e-5, atol=1e-6)
     assert main(argv[:3] + ["-5"] + argv[4:]) == 2
     assert main(["predict", str(tmp_path / "nope.pkl"), *argv[2:]]) == 2

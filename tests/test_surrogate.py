@@ -14,6 +14,7 @@ from crashfuse.errors import InputError
 from crashfuse.filters import filter_pulse
 from crashfuse.io.nhtsa import read_nhtsa
 from crashfuse.iso18571 import iso_score
+from crashfuse.pulse import Pulse
 from crashfuse.surrogate import CAECurve, CAESurrogate, holdout_accuracy
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
@@ -133,6 +134,19 @@ def test_estimator_manners_and_seeding(world):
     b = clone(est).fit(runs).curve(10.0, 950.0, 720.0, "Type I", "FWD")
     np.testing.assert_array_equal(a.a_loading, b.a_loading)
     assert a.u_end == b.u_end
+
+
+def test_a_run_whose_falling_tail_cannot_absorb_the_energy_is_an_input_error():
+    # Closed form: the decel falls linearly from 101 to 1 m/s^2 in 0.1 s, a velocity change of
+    # 5.1 m/s at v0 = 10 m/s. Continued with its falling last stiffness the decel reaches 0 long
+    # before the remaining energy is absorbed, so the run has no maximum crush (was a silent NaN).
+    t = np.linspace(0.0, 0.1, 1001)
+    run = Pulse(time=t, decel=101.0 - 1000.0 * t, v0=10.0, front_weight=900.0, rear_weight=700.0,
+                run_id="C999", source="cae", where="c999.csv")
+    assert not displacement_branches(run).stopped
+    with pytest.raises(InputError, match="C999.*before absorbing the impact energy") as err:
+        CAECurve.from_pulse(run)
+    assert err.value.file == "c999.csv" and err.value.field == "v0"
 
 
 def test_bad_input(world, fitted):
