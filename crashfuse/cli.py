@@ -196,6 +196,8 @@ def _add_method_options(s) -> None:
                    help="cluster rule of the bias model (default select)")
     s.add_argument("--use-companion", action="store_true",
                    help="predict a test's condition with its companion CAE run instead of the surrogate")
+    s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
+    s.add_argument("--n-grid", type=_positive, default=200, help="bias points per test per branch (default 200)")
 
 
 # The real test sits beside the repository (../shared), never inside it.
@@ -258,8 +260,6 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="bias inputs: paper [x, v0, w_f, w_r] or state [x, v, v0, w_f, w_r] (default paper)")
     s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
                    help="test to keep out of the bias data (repeatable)")
-    s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
-    s.add_argument("--n-grid", type=_positive, default=200, help="bias points per test per branch (default 200)")
     _add_method_options(s)
     s.add_argument("--out", required=True, help="model file to write")
     s.set_defaults(func=_fit)
@@ -287,8 +287,6 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
                    help="run only the fold holding out this test (repeatable; default every test)")
     s.add_argument("--surrogate", default=None, help="CAE surrogate file from 'crashfuse prepare' (default: fit it)")
-    s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
-    s.add_argument("--n-grid", type=_positive, default=200, help="bias points per test per branch (default 200)")
     _add_method_options(s)
     s.add_argument("--out", required=True, help="output folder")
     s.set_defaults(func=_evaluate)
