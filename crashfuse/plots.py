@@ -19,6 +19,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from crashfuse.errors import InputError
+from crashfuse.io.tables import read_table
 from crashfuse.io.atomic import atomic_path
 from crashfuse.pulse import Pulse
 from crashfuse.report import (BASELINE, INPUTS, SCORES, model_order, natural_key, read_iso_table, table2, table_file,
@@ -54,15 +55,7 @@ def read_prediction_csv(path: str | os.PathLike) -> pd.DataFrame:
         ``decel_lo_g > decel_hi_g``.
     """
     path = Path(path)
-    try:
-        frame = pd.read_csv(path)
-    except FileNotFoundError:
-        raise InputError("expected a prediction CSV, but the file does not exist", path) from None
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
-        raise InputError(f"expected a CSV table: {err}", path) from None
-    missing = [c for c in PREDICTION_COLUMNS if c not in frame.columns]
-    if missing:
-        raise InputError(f"expected the columns {list(PREDICTION_COLUMNS)}, missing {missing}", path, missing[0])
+    frame = read_table(path, PREDICTION_COLUMNS, "a prediction CSV")
     if len(frame) < 2:
         raise InputError(f"expected at least 2 samples, got {len(frame)}", path, "time_s")
     for col in PREDICTION_COLUMNS:

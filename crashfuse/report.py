@@ -22,6 +22,7 @@ import pandas as pd
 
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path, write_text
+from crashfuse.io.tables import read_table
 
 ISO_TABLE = "iso_table.csv"
 KEYS = ("test_id", "inputs", "model", "window_ms")
@@ -104,15 +105,7 @@ def read_iso_table(path: str | os.PathLike) -> pd.DataFrame:
     path = Path(path)
     if path.is_dir():
         path = path / ISO_TABLE
-    try:
-        frame = pd.read_csv(path, dtype={k: str for k in KEYS}, keep_default_na=False)
-    except FileNotFoundError:
-        raise InputError("expected an ISO score table, but the file does not exist", path) from None
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as err:
-        raise InputError(f"expected a CSV table: {err}", path) from None
-    missing = [c for c in COLUMNS if c not in frame.columns]
-    if missing:
-        raise InputError(f"expected the columns {list(COLUMNS)}, missing {missing}", path, missing[0])
+    frame = read_table(path, COLUMNS, "an ISO score table", dtype={k: str for k in KEYS}, keep_default_na=False)
     if frame.empty:
         raise InputError("expected at least one row of scores, found only the header", path, "test_id")
     _check_labels(frame, path)
