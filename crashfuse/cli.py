@@ -131,8 +131,11 @@ def _evaluate(args) -> int:
     from crashfuse.io.campaign import read_campaign
     from crashfuse.model import load_surrogate
 
+    campaign = read_campaign(args.campaign)
     surrogate = load_surrogate(args.surrogate) if args.surrogate else None
-    result = evaluate(read_campaign(args.campaign), ks=args.k, inputs=args.inputs, out=args.out,
+    if surrogate is not None:  # a surrogate of another campaign would silently skew every fold
+        surrogate.check_campaign(campaign, args.surrogate)
+    result = evaluate(campaign, ks=args.k, inputs=args.inputs, out=args.out,
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
                       holdout=args.holdout, use_companion=args.use_companion, assignment=args.assignment,
                       extra_inputs=args.extra_inputs, n_grid=args.n_grid)
@@ -172,7 +175,8 @@ def _track(args) -> int:
         config = json.loads(args.config_json) if args.config_json else None
     except json.JSONDecodeError as err:
         raise InputError(f"expected JSON: {err}", field="--config-json") from None
-    logged = log_evaluation(args.results, args.tracking_uri, config=config, project_dir=os.getcwd())
+    logged = log_evaluation(args.results, args.tracking_uri, config=config, project_dir=os.getcwd(),
+                            fold_files=args.folds)
     if args.out:
         write_text(args.out, json.dumps(logged, indent=2, sort_keys=True) + "\n")
     print(f"logged {len(logged['folds'])} folds to {logged['tracking_uri']} ({logged['experiment_name']})")
@@ -322,6 +326,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tracking-uri", default=None, help="MLflow tracking URI (default: MLFLOW_TRACKING_URI, "
                    "else sqlite:///mlflow.db in the working folder)")
     s.add_argument("--config-json", default=None, help="the workflow config as JSON (hashed into a tag)")
+    s.add_argument("--folds", nargs="+", default=None, metavar="FOLD_JSON",
+                   help="the fold JSON files to log (default: every *.fold.json below the results folder)")
     s.add_argument("--out", default=None, help="write the logged run ids as JSON here")
     s.set_defaults(func=_track)
     return p

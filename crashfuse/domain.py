@@ -76,28 +76,6 @@ def velocity_step(v, a_prev, a_new, dt: float):
     return v - _velocity_decrement(a_prev, a_new, dt)
 
 
-def verlet_step(s, v, a_prev, accel_fn, dt: float):
-    """One velocity-Verlet step when the deceleration is a function of displacement.
-
-    Parameters
-    ----------
-    s, v, a_prev : float or ndarray, shape (m,)
-        State now: displacement (m), velocity (m/s), deceleration (m/s^2).
-    accel_fn : callable
-        ``accel_fn(s_new) -> a_new``, the deceleration (m/s^2) at the new displacement, same shape.
-    dt : float
-        Time step in s.
-
-    Returns
-    -------
-    s_new, v_new, a_new : float or ndarray, shape (m,)
-        The state one step on.
-    """
-    s_new = position_step(s, v, a_prev, dt)
-    a_new = accel_fn(s_new)
-    return s_new, velocity_step(v, a_prev, a_new, dt), a_new
-
-
 def kinematics(decel, dt: float, v0) -> tuple[np.ndarray, np.ndarray]:
     """Velocity and displacement of whole records by velocity Verlet (``s_0 = 0``, ``v_0 = v0``).
 
@@ -149,23 +127,6 @@ class Branch:
     decel: np.ndarray
     time: np.ndarray
     velocity: np.ndarray
-
-    def decel_at(self, grid) -> np.ndarray:
-        """Deceleration (m/s^2) linearly interpolated at branch coordinates ``grid`` (m).
-
-        Raises
-        ------
-        InputError
-            If a grid point lies outside ``[x[0], x[-1]]`` (no extrapolation).
-        """
-        grid = np.asarray(grid, dtype=float)
-        lo, hi = self.x[0], self.x[-1]
-        outside = ~((grid >= lo) & (grid <= hi))
-        if outside.any():
-            bad = grid[outside].flat[0]
-            raise InputError(f"grid point {bad:.6g} m lies outside the branch [{lo:.6g}, {hi:.6g}] m",
-                             field="s_grid")
-        return np.interp(grid, self.x, self.decel)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,24 +190,6 @@ def displacement_branches(pulse: Pulse) -> Branches:
     loading = _branch(s[: k + 1], p.time[: k + 1], p.decel[: k + 1], v[: k + 1])
     unloading = _branch(s_max - s[unload], p.time[unload], p.decel[unload], v[unload])
     return Branches(loading, unloading, s_max, t_stop, True)
-
-
-def resample_loading(branches: Branches, s_grid) -> np.ndarray:
-    """Deceleration of the loading branch on a displacement grid.
-
-    Parameters
-    ----------
-    branches : Branches
-        From :func:`displacement_branches`.
-    s_grid : array_like, shape (g,)
-        Displacements in m within ``[0, s_max]``.
-
-    Returns
-    -------
-    ndarray, shape (g,)
-        Deceleration in m/s^2 at each grid displacement.
-    """
-    return branches.loading.decel_at(s_grid)
 
 
 def _branch(x, time, decel, velocity) -> Branch:

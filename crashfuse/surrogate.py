@@ -28,11 +28,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import time
 from typing import Iterable
 
 import numpy as np
-from sklearn.base import BaseEstimator, clone
+from sklearn.base import BaseEstimator
 from sklearn.utils import check_random_state
 from sklearn.utils.validation import check_is_fitted
 
@@ -41,7 +42,6 @@ from crashfuse.domain import Branches, displacement_branches
 from crashfuse.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
-from crashfuse.iso18571 import iso_score_many
 from crashfuse.pulse import Pulse
 
 SEPARATION = 0.02  # unloading ends where the decel first falls to 2 % of its value at maximum crush
@@ -224,6 +224,8 @@ class CAESurrogate(BaseEstimator):
         Levels one-hot encoded per categorical column used.
     run_ids_ : list of str
         The CAE runs fitted; ``n_unloading_`` of them had an unloading branch reaching separation.
+    campaign_hash_ : str or None
+        :meth:`Campaign.content_hash` of the campaign fitted on; None if fitted from pulses.
     fit_time_ : float
         Wall time of ``fit`` in s.
     """
@@ -267,6 +269,7 @@ class CAESurrogate(BaseEstimator):
         self._fit_loading(X, branches, rng)
         self._fit_unloading(X, branches, rng)
         self.run_ids_ = [p.run_id for p in pulses]
+        self.campaign_hash_ = runs.content_hash() if isinstance(runs, Campaign) else None
         self.fit_time_ = time.perf_counter() - t0
         return self
 
@@ -303,6 +306,30 @@ class CAESurrogate(BaseEstimator):
         u_end = float(np.exp(u_scores[-1]))
         s_max = _energy_stop(self.s_grid_, a_load, v0, f"surrogate curve at v0 = {v0:.4g} m/s")
         return CAECurve(self.s_grid_, a_load, self.w_grid_ * u_end, a_unload, s_max, u_end, float(v0))
+
+    def check_campaign(self, campaign: Campaign, file: str | os.PathLike | None = None) -> None:
+        """Refuse to serve ``campaign`` unless this surrogate was fitted on exactly that campaign.
+
+        Parameters
+        ----------
+        campaign : Campaign
+            The campaign about to be evaluated or fitted with this surrogate.
+        file : path-like, optional
+            Where the surrogate was read from, for the error message.
+
+        Raises
+        ------
+        InputError
+            If the recorded ``campaign_hash_`` is missing (fitted from pulses, or an older file) or
+            differs from ``campaign.content_hash()`` (field ``campaign_hash``).
+        """
+        check_is_fitted(self)
+        recorded, actual = getattr(self, "campaign_hash_", None), campaign.content_hash()
+        if recorded != actual:
+            got = "records no campaign" if recorded is None else f"was fitted on campaign {recorded[:12]}"
+            raise InputError(f"this CAE surrogate {got}, expected campaign {actual[:12]} "
+                             f"({campaign.root or 'in memory'}): re-run `crashfuse prepare` on it", file,
+                             "campaign_hash")
 
     # --------------------------------------------------------------------------- features
     def _choose_categories(self, pulses: list[Pulse]) -> dict[str, list[str]]:
@@ -368,42 +395,6 @@ class CAESurrogate(BaseEstimator):
         targets = [*scores.T, np.array(log_u)]
         self.unload_gps_ = [self._gp(rng).fit(X[rows], z) for z in targets]
         self.n_unloading_ = len(rows)
-
-
-# ------------------------------------------------------------------------------- accuracy
-def holdout_accuracy(campaign: Campaign, surrogate: CAESurrogate, fraction: float = 0.1, random_state=0,
-                     window: tuple[float, float] = (0.0, 0.06)) -> dict:
-    """ISO/TS 18571 of surrogate pulses vs held-out CAE runs.
-
-    A seeded ``fraction`` of the campaign's CAE runs is held out, a clone of ``surrogate`` (its
-    settings) is fitted on the rest, and each held-out condition is rolled out with zero bias
-    (:meth:`CAECurve.rollout`) on the run's own time grid and rated against the run over
-    ``window`` (s).
-
-    Returns
-    -------
-    dict
-        ``run_ids`` (list of h), ``overall`` (ndarray, shape (h,)), ``mean``, ``min``,
-        ``fit_time_s`` and ``surrogate`` (the fitted clone).
-    """
-    ids = campaign.cae
-    if not 0 < fraction < 1 or round(fraction * len(ids)) < 1:
-        raise InputError(f"expected a fraction in (0, 1) holding out at least one of {len(ids)} CAE runs, "
-                         f"got {fraction}", field="fraction")
-    rng = np.random.default_rng(random_state)
-    held = sorted(rng.choice(len(ids), size=round(fraction * len(ids)), replace=False))
-    held_ids = [ids[i] for i in held]
-    train = [campaign.pulses[r] for r in ids if r not in set(held_ids)]
-    surrogate = clone(surrogate).fit(train)
-    scores = []
-    for run_id in held_ids:
-        p = campaign.pulses[run_id]
-        c = surrogate.curve(p.v0, p.front_weight, p.rear_weight, p.meta.get("powertrain"), p.meta.get("drive"))
-        traj = c.rollout(p.dt, p.time.size - 1)
-        scores.append(iso_score_many(p.time, p.decel, traj.time, traj.decel, *window)["overall"][0])
-    scores = np.array(scores)
-    return {"run_ids": held_ids, "overall": scores, "mean": float(scores.mean()), "min": float(scores.min()),
-            "fit_time_s": surrogate.fit_time_, "surrogate": surrogate}
 
 
 # ------------------------------------------------------------------------------- helpers

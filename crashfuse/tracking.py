@@ -19,7 +19,7 @@ import os
 import subprocess
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 import pandas as pd
@@ -118,8 +118,18 @@ def git_commit(project_dir: str | os.PathLike | None = None) -> str:
 # --- reading and checking an evaluation directory ----------------------------------------------
 
 
-def load_folds(results_dir: str | os.PathLike) -> tuple[pd.DataFrame, list[Fold]]:
-    """Read ``iso_table.csv`` and every ``*.fold.json`` below ``results_dir`` and check they agree.
+def load_folds(results_dir: str | os.PathLike,
+               fold_files: Iterable[str | os.PathLike] | None = None) -> tuple[pd.DataFrame, list[Fold]]:
+    """Read ``iso_table.csv`` of ``results_dir`` and the fold JSON files and check they agree.
+
+    Parameters
+    ----------
+    results_dir : str or PathLike
+        Holds ``iso_table.csv``.
+    fold_files : iterable of path, optional
+        The fold JSON files of this evaluation (the workflow passes its fold list, so folds left
+        over from an earlier, wider config are not read). Default: every ``*.fold.json`` below
+        ``results_dir``.
 
     Returns
     -------
@@ -138,9 +148,14 @@ def load_folds(results_dir: str | os.PathLike) -> tuple[pd.DataFrame, list[Fold]
     """
     results_dir = Path(results_dir)
     iso = read_iso_table(results_dir / ISO_TABLE)
-    paths = sorted(results_dir.rglob(f"*{FOLD_SUFFIX}"))
-    if not paths:
-        raise InputError(f"expected fold JSON files (*{FOLD_SUFFIX}) below this folder, found none", results_dir)
+    if fold_files is None:
+        paths = sorted(results_dir.rglob(f"*{FOLD_SUFFIX}"))
+        if not paths:
+            raise InputError(f"expected fold JSON files (*{FOLD_SUFFIX}) below this folder, found none", results_dir)
+    else:
+        paths = [Path(p) for p in fold_files]
+        if not paths:
+            raise InputError("expected at least one fold JSON file, got an empty list", field="fold_files")
     scores = iso.set_index(["inputs", "model", "test_id", "window_ms"])[list(SCORES)]
     folds, seen = [], {}
     for path in paths:
@@ -203,7 +218,7 @@ def _check_coverage(iso: pd.DataFrame, seen: dict, results_dir: Path) -> None:
     for inputs, model, test in rows[["inputs", "model", "test_id"]].drop_duplicates().itertuples(index=False):
         if (inputs, int(model[1:]), test) not in seen:
             raise InputError(f"has scores for test {test}, inputs {inputs}, model {model} but no fold JSON "
-                             f"(*{FOLD_SUFFIX}) for it below {results_dir}", results_dir / ISO_TABLE, "model")
+                             f"(*{FOLD_SUFFIX}) for it among the folds read", results_dir / ISO_TABLE, "model")
 
 
 def _check_same_keys(folds: list[Fold]) -> None:
@@ -226,19 +241,23 @@ def _check_same_keys(folds: list[Fold]) -> None:
 
 def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = None,
                    config: str | os.PathLike | Mapping | None = None,
-                   project_dir: str | os.PathLike | None = None) -> dict[str, Any]:
+                   project_dir: str | os.PathLike | None = None,
+                   fold_files: Iterable[str | os.PathLike] | None = None) -> dict[str, Any]:
     """Log an evaluation directory to MLflow, creating or updating its runs.
 
     Parameters
     ----------
     results_dir : str or PathLike
-        Holds ``iso_table.csv`` and the ``*.fold.json`` files (at any depth) with their figures.
+        Holds ``iso_table.csv`` and, unless ``fold_files`` is given, the ``*.fold.json`` files (at
+        any depth) with their figures.
     tracking_uri : str, optional
         Tracking URI from config; else ``MLFLOW_TRACKING_URI``; else ``sqlite:///<project_dir>/mlflow.db``.
     config : path or mapping, optional
         The workflow config; its hash is tagged on every run.
     project_dir : str or PathLike, optional
         The project (git checkout, home of the embedded store); default the current directory.
+    fold_files : iterable of path, optional
+        The fold JSON files to log (see :func:`load_folds`); default every one below ``results_dir``.
 
     Returns
     -------
@@ -246,7 +265,7 @@ def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = No
         ``tracking_uri``, ``experiment_id``, ``experiment_name``, ``parents`` {"inputs/K<k>": run_id}
         and ``folds`` {"inputs/K<k>/test_id": run_id}.
     """
-    iso, folds = load_folds(results_dir)
+    iso, folds = load_folds(results_dir, fold_files)
     uri = resolve_tracking_uri(tracking_uri, project_dir)
     client = MlflowClient(tracking_uri=uri)
     campaign = folds[0].record.campaign

@@ -261,6 +261,43 @@ def test_write_failure_leaves_nothing_half_written(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
 
 
+def test_extra_files_are_written_with_the_campaign(tmp_path):
+    out = write_campaign(small_campaign(), tmp_path / "new", extra_files={"world.json": "{}\n", "key.bin": b"\0\1"})
+    assert (out / "world.json").read_text() == "{}\n" and (out / "key.bin").read_bytes() == b"\0\1"
+    assert read_campaign(out).tests == ["T1"]  # the reader ignores files it does not know
+
+
+def test_extra_file_failure_leaves_no_folder_and_keeps_the_old_one(tmp_path, monkeypatch):
+    real = Path.write_bytes
+
+    def failing(self, data):
+        if self.name == "world.json":
+            raise OSError("disk full")
+        return real(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", failing)
+    with pytest.raises(OSError):
+        write_campaign(small_campaign(), tmp_path / "new", extra_files={"world.json": "{}"})
+    assert list(tmp_path.iterdir()) == []
+    old = write_folder(tmp_path / "old", VALID_ROWS)
+    before = folder_bytes(old)
+    with pytest.raises(OSError):
+        write_campaign(small_campaign(), old, overwrite=True, extra_files={"world.json": "{}"})
+    assert folder_bytes(old) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
+
+
+@pytest.mark.parametrize("extra, field", [({"conditions.csv": "x"}, "extra_files"), ({"pulses": "x"}, "extra_files"),
+                                          ({"sub/world.json": "x"}, "extra_files"), ({"..": "x"}, "extra_files"),
+                                          ({"a\\b": "x"}, "extra_files"), ({"": "x"}, "extra_files"),
+                                          ({"world.json": 3}, "extra_files['world.json']")])
+def test_extra_files_need_plain_new_names_and_text_or_bytes(tmp_path, extra, field):
+    with pytest.raises(InputError) as err:
+        write_campaign(small_campaign(), tmp_path / "x", extra_files=extra)
+    assert err.value.field == field
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_write_rejects_unknown_unit(tmp_path):
     with pytest.raises(InputError, match="speed_unit"):
         write_campaign(small_campaign(), tmp_path / "x", speed_unit="fps")

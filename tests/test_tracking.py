@@ -166,6 +166,39 @@ def test_inconsistent_evaluations_are_refused_before_logging(tmp_path, store):
     assert not (tmp_path / "store").exists()  # nothing was written
 
 
+def test_an_explicit_fold_list_ignores_stale_folds(tmp_path, store):
+    results = tmp_path / "results"
+    table = make_evaluation(results)
+    listed = sorted(results.rglob("*.fold.json"))
+    stale = results / "paper" / "K3" / "T01" / "T01.fold.json"  # left by an earlier config with K = 3
+    stale.parent.mkdir(parents=True)
+    doc = json.loads(listed[0].read_text())
+    stale.write_text(json.dumps({**doc, "k": 3}))
+    with pytest.raises(InputError) as err:  # the folder form reads it, and iso_table.csv has no K3 rows
+        tracking.log_evaluation(results, tracking_uri=store, project_dir=tmp_path)
+    assert err.value.file.endswith("iso_table.csv") and "K3" in str(err.value)
+    out = tracking.log_evaluation(results, tracking_uri=store, project_dir=tmp_path, fold_files=listed)
+    check_logged(MlflowClient(tracking_uri=store), out, table, results)
+    with pytest.raises(InputError) as err:
+        tracking.load_folds(results, fold_files=[])
+    assert err.value.field == "fold_files"
+
+
+def test_cli_track_takes_the_fold_list(tmp_path, store, capsys):
+    from crashfuse.cli import main
+
+    results = tmp_path / "results"
+    make_evaluation(results)
+    listed = [str(f) for f in sorted(results.rglob("*.fold.json"))]
+    (results / "paper" / "K3").mkdir()
+    (results / "paper" / "K3" / "junk.fold.json").write_text("{}")  # stale and broken: never read
+    argv = ["track", str(results), "--tracking-uri", store, "--out", str(tmp_path / "tracking.json")]
+    assert main([*argv, "--folds", *listed]) == 0
+    assert len(json.loads((tmp_path / "tracking.json").read_text())["folds"]) == len(KS) * len(TESTS)
+    assert main(argv) == 2
+    assert "junk.fold.json" in capsys.readouterr().err
+
+
 def test_tracking_uri_precedence(tmp_path, monkeypatch):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     assert tracking.resolve_tracking_uri(None, tmp_path) == f"sqlite:///{tmp_path.resolve()}/mlflow.db"

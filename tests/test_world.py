@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 import time
 from pathlib import Path
 
@@ -189,6 +190,22 @@ def test_world_json_is_the_answer_key(paper):
     assert set(world["effects"]["cae"]) == {"damping", "unloading", "mass"}
     listed = {f"{e}.{k}": v for e, ps in world["effects"]["test"].items() for k, v in ps.items()}
     assert listed == REALISTIC
+
+
+def test_campaign_takes_its_final_name_with_world_json_or_not_at_all(tmp_path, monkeypatch):
+    from crashfuse.io import campaign as cmod
+    from crashfuse.world import generate as gmod
+
+    seen, swap = [], cmod._swap_in
+    monkeypatch.setattr(cmod, "_swap_in", lambda tmp, folder: (seen.append(sorted(os.listdir(tmp))),
+                                                               swap(tmp, folder)))
+    generate(tmp_path / "ok", resolve(), seed=3, n_cae=2)
+    assert seen == [["conditions.csv", "pulses", "world.json"]]
+    campaign, _ = build(resolve(), seed=3, n_cae=2)
+    monkeypatch.setattr(gmod, "build", lambda *args: (campaign, {"bad": float("nan")}))  # not JSON
+    with pytest.raises(ValueError):
+        generate(tmp_path / "bad", resolve(), seed=3, n_cae=2)
+    assert sorted(os.listdir(tmp_path)) == ["ok"]
 
 
 def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path, paper):

@@ -17,7 +17,7 @@ import re
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 import pandas as pd
@@ -547,7 +547,8 @@ def _check_delta_v(pulse: Pulse) -> None:
 
 
 def write_campaign(campaign: Campaign, folder: str | os.PathLike, speed_unit: str = "mph", mass_unit: str = "lb",
-                   accel_unit: str = "g", overwrite: bool = False) -> Path:
+                   accel_unit: str = "g", overwrite: bool = False,
+                   extra_files: Mapping[str, str | bytes] | None = None) -> Path:
     """Write a campaign folder atomically, with deterministic bytes.
 
     Parameters
@@ -562,6 +563,10 @@ def write_campaign(campaign: Campaign, folder: str | os.PathLike, speed_unit: st
         Units of the written columns.
     overwrite : bool
         Replace a non-empty existing folder.
+    extra_files : mapping of str to str or bytes, optional
+        Further files beside ``conditions.csv`` (plain file names, e.g. ``world.json``; text is
+        written as UTF-8). They are written with the campaign, so the folder appears with all of
+        them or not at all.
 
     Returns
     -------
@@ -573,6 +578,8 @@ def write_campaign(campaign: Campaign, folder: str | os.PathLike, speed_unit: st
                               ("accel_unit", units.ACCEL, accel_unit)):
         if unit not in table:
             raise InputError(f"expected one of {sorted(table)}, got {unit!r}", field=name)
+    extra_files = dict(extra_files or {})
+    _check_extra(extra_files)
     if folder.exists() and not folder.is_dir():
         raise InputError("expected a folder, found a file", folder)
     if folder.is_dir() and any(folder.iterdir()) and not overwrite:
@@ -581,11 +588,25 @@ def write_campaign(campaign: Campaign, folder: str | os.PathLike, speed_unit: st
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".part", dir=folder.parent))
     try:
         _write_into(campaign, tmp, folder, speed_unit, mass_unit, accel_unit)
+        for name, content in extra_files.items():
+            (tmp / name).write_bytes(content.encode() if isinstance(content, str) else content)
         tmp.chmod(default_mode(directory=True))  # mkdtemp makes 0700; the folder gets the usual permissions
         _swap_in(tmp, folder)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return folder
+
+
+def _check_extra(extra_files: dict) -> None:
+    """Extra files are plain names that cannot clash with the campaign's own files, holding text or bytes."""
+    for name, content in extra_files.items():
+        if (not isinstance(name, str) or name in ("", ".", "..", CONDITIONS, PULSES) or Path(name).name != name
+                or "\\" in name):
+            raise InputError(f"expected a plain file name other than {CONDITIONS} and {PULSES}, got {name!r}",
+                             field="extra_files")
+        if not isinstance(content, (str, bytes)):
+            raise InputError(f"expected str or bytes content, got {type(content).__name__}",
+                             field=f"extra_files[{name!r}]")
 
 
 def _write_into(campaign: Campaign, tmp: Path, final: Path, speed_unit, mass_unit, accel_unit) -> None:

@@ -17,7 +17,6 @@ import numpy as np
 import pandas as pd
 
 from crashfuse.errors import InputError
-from crashfuse.io.atomic import write_text
 from crashfuse.io.campaign import Campaign, write_campaign
 from crashfuse.pulse import Pulse
 from crashfuse.world import WORLD_VERSION
@@ -112,13 +111,13 @@ def world_key(design: Design, seed: int, params: dict, n_tests: int, n_cae: int)
 def generate(out: str | os.PathLike, design: Design, seed: int = 0, n_cae: int = N_CAE) -> Path:
     """Write the campaign folder ``out`` (mph, lb, g) with ``world.json`` beside conditions.csv.
 
-    The campaign folder is written atomically by :func:`crashfuse.io.campaign.write_campaign`
-    (which refuses a non-empty folder); ``world.json`` is written atomically into it afterwards.
+    The folder, ``world.json`` included, is written atomically by
+    :func:`crashfuse.io.campaign.write_campaign` (which refuses a non-empty folder): a campaign never
+    appears without its answer key.
     """
     campaign, world = build(design, seed, n_cae)
-    folder = write_campaign(campaign, out)
-    write_text(folder / WORLD_JSON, json.dumps(world, indent=2, sort_keys=True, allow_nan=False) + "\n")
-    return folder
+    key = json.dumps(world, indent=2, sort_keys=True, allow_nan=False) + "\n"
+    return write_campaign(campaign, out, extra_files={WORLD_JSON: key})
 
 
 def _check_seed(seed) -> int:

@@ -1,5 +1,6 @@
 # MLflow: one serial logging step after every fold (SQLite takes one writer at a time; see
 # crashfuse/tracking.py). Runs are keyed by tags, so a rerun updates its runs instead of adding more.
+# The fold JSON files are passed explicitly: folds of an earlier, wider config may still lie in results/.
 
 
 rule track:
@@ -20,4 +21,5 @@ rule track:
     log:
         f"{RESULTS}/logs/track.log",
     shell:
-        "crashfuse track {params.results:q} {params.uri} --config-json {params.config:q} --out {output:q} > {log:q} 2>&1"
+        "crashfuse track {params.results:q} --folds {input.folds:q} {params.uri} --config-json {params.config:q} "
+        "--out {output:q} > {log:q} 2>&1"
