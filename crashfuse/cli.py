@@ -52,6 +52,18 @@ def _iso_score(args) -> int:
     return 0
 
 
+def _barrier_model(args) -> int:
+    from crashfuse.barrier import barrier_campaign
+
+    folder, comparison = barrier_campaign(args.ev5_dir, args.out, args.powertrain, args.drive)
+    if args.json:
+        _print_json(comparison)
+    else:
+        iso = "  ".join(f"ISO {w} {s['overall']:.3f}" for w, s in comparison["iso"].items())
+        print(f"wrote {folder}: {comparison['test']} and its single-mass model {comparison['cae_run_id']}; {iso}")
+    return 0
+
+
 def _world_generate(args) -> int:
     from crashfuse.world.effects import parse_overrides
     from crashfuse.world.generate import generate
@@ -235,6 +247,14 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--end-ms", type=float, default=60.0, help="window end in ms, inclusive (default 60)")
     s.add_argument("--json", action="store_true", help="print JSON")
     s.set_defaults(func=_iso_score)
+
+    s = sub.add_parser("barrier-model", help="single-mass model of a load-cell barrier test as its companion CAE run")
+    s.add_argument("ev5_dir", metavar="EV5DIR", help="NHTSA EV5 test folder with barrier load cells")
+    s.add_argument("--out", required=True, help="campaign folder to write (must not exist or be empty)")
+    s.add_argument("--powertrain", default="unknown", help="powertrain label of both runs (default unknown)")
+    s.add_argument("--drive", default="unknown", help="drive label of both runs (default unknown)")
+    s.add_argument("--json", action="store_true", help="print the model-vs-test comparison as JSON")
+    s.set_defaults(func=_barrier_model)
 
     w = sub.add_parser("world", help="the synthetic crash world (validation only)")
     wsub = w.add_subparsers(dest="world_command", required=True, parser_class=_Parser)
