@@ -19,6 +19,7 @@ include: "workflow/rules/campaign.smk"
 include: "workflow/rules/folds.smk"
 include: "workflow/rules/aggregate.smk"
 include: "workflow/rules/track.smk"
+include: "workflow/rules/diagnosis.smk"
 
 
 localrules:

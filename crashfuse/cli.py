@@ -10,6 +10,7 @@ import json
 import os
 import sys
 
+from crashfuse.effects import EFFECTS
 from crashfuse.errors import InputError
 
 
@@ -90,6 +91,15 @@ def _world_realism(args) -> int:
     return 0
 
 
+def _world_validate(args) -> int:
+    from crashfuse.world.validation import validate
+
+    table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds)
+    runs = table.drop_duplicates(["withheld", "strength", "seed"])
+    print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with the right first effect -> {args.out}")
+    return 0
+
+
 def _fit(args) -> int:
     from crashfuse.io.campaign import read_campaign
     from crashfuse.model import fit_model
@@ -153,6 +163,27 @@ def _evaluate(args) -> int:
                       extra_inputs=args.extra_inputs, n_grid=args.n_grid)
     summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
     print(summary.mean().round(3).to_string())
+    return 0
+
+
+def _diagnose(args) -> int:
+    from crashfuse.diagnose import diagnose, write_diagnosis
+    from crashfuse.gap import locate_gap
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.model import load_surrogate
+
+    campaign = read_campaign(args.campaign)
+    surrogate = load_surrogate(args.surrogate) if args.surrogate else None
+    if surrogate is not None:
+        surrogate.check_campaign(campaign, args.surrogate)
+    diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, k=args.k, n_samples=args.samples,
+                    random_state=args.seed, surrogate=surrogate, in_sample=args.in_sample,
+                    residual_model=not args.no_residual)
+    gap = locate_gap(campaign, surrogate=surrogate, random_state=args.seed) if len(campaign.tests) >= 2 else None
+    if gap is not None:
+        diag.regions = gap.to_json()
+    out = write_diagnosis(diag, args.out, campaign, gap)
+    print(f"verdict: {', '.join(diag.verdict) or 'none'} -> {out / 'diagnosis.md'}")
     return 0
 
 
@@ -277,6 +308,14 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("campaign", help="campaign folder")
     s.set_defaults(func=_world_realism)
 
+    s = wsub.add_parser("validate", help="withheld-effect validation of the gap diagnosis (reads world.json)")
+    s.add_argument("--effects", nargs="+", default=list(EFFECTS), metavar="EFFECT",
+                   help="effects withheld one at a time (the control with none is always added)")
+    s.add_argument("--strengths", nargs="+", choices=("realistic", "subtle"), default=["realistic", "subtle"])
+    s.add_argument("--seeds", nargs="+", type=_seed, default=[0], help="world seeds (default 0)")
+    s.add_argument("--out", required=True, help="output folder for validation.csv and validation.md")
+    s.set_defaults(func=_world_validate)
+
     s = sub.add_parser("fit", help="fit the CAE surrogate and the per-branch bias models; write a model file")
     s.add_argument("campaign", help="campaign folder")
     s.add_argument("--k", type=_positive, required=True, help="mixture components K of the bias models")
@@ -314,6 +353,21 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_method_options(s)
     s.add_argument("--out", required=True, help="output folder")
     s.set_defaults(func=_evaluate)
+
+    s = sub.add_parser("diagnose", help="sim-to-real gap: where it lies, which unmodelled effect, how far it shrinks")
+    s.add_argument("campaign", help="campaign folder")
+    s.add_argument("--effects", nargs="+", default=list(EFFECTS), metavar="EFFECT",
+                   help=f"candidate effects (default all: {' '.join(EFFECTS)})")
+    s.add_argument("--threshold", type=float, default=0.10,
+                   help="relative drop of the held-out squared error an effect must bring (default 0.10)")
+    s.add_argument("--k", type=_positive, default=1, help="mixture size of the GMM-GPR residual model (default 1)")
+    s.add_argument("--samples", type=_positive, default=200, help="Monte Carlo samples per GMM-GPR fold (default 200)")
+    s.add_argument("--surrogate", default=None, help="CAE surrogate file from 'crashfuse prepare' (default: fit it)")
+    s.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
+    s.add_argument("--in-sample", action="store_true", help="allow a single test (no hold-out; evidence in-sample)")
+    s.add_argument("--no-residual", action="store_true", help="skip the GMM-GPR rows of the shrink table (faster)")
+    s.add_argument("--out", required=True, help="output folder")
+    s.set_defaults(func=_diagnose)
 
     s = sub.add_parser("prepare", help="fit the CAE surrogate once on a campaign's CAE runs (shared by folds)")
     s.add_argument("campaign", help="campaign folder")

@@ -1,10 +1,12 @@
-"""Figures of an evaluation: per-fold pulse predictions and the ISO score summary.
+"""Figures of an evaluation (per-fold pulse predictions, the ISO score summary) and of a gap diagnosis.
 
 The fold figure follows the paper's Figs. 5-8: deceleration in g against time in ms (0-100 ms),
 the physical test, the CAE run and the bias-corrected mean with its 95 % band. The summary figure
 shows the ISO score of every held-out test for CAE and each cluster count K, one panel per input
 mode. Figures are built on a bare ``matplotlib.figure.Figure`` (Agg canvas, no pyplot state) and
 saved as PNG without a Software/time stamp, atomically, so equal inputs give equal bytes.
+The gap figures (:func:`bias_map_figure`, :func:`gap_pulses_figure`) draw a
+:class:`crashfuse.gap.GapMap`.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch
 
 from crashfuse.errors import InputError
 from crashfuse.io.tables import read_table
@@ -24,7 +27,7 @@ from crashfuse.io.atomic import atomic_path
 from crashfuse.pulse import Pulse
 from crashfuse.report import (BASELINE, INPUTS, SCORES, model_order, natural_key, read_iso_table, table2, table_file,
                               window_bounds)
-from crashfuse.units import G0, MS
+from crashfuse.units import G0, MM, MPH, MS
 
 PREDICTION_COLUMNS = ("time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g")
 T_END = 0.1  # s, the span of the paper's figures
@@ -32,6 +35,8 @@ DPI = 120
 # Colour-blind safe (Okabe-Ito): test black, CAE vermillion, corrected blue.
 COLORS = {"test": "black", "cae": "#D55E00", "mean": "#0072B2", "band": "#56B4E9"}
 MODEL_COLORS = ["#7F7F7F", "#56B4E9", "#009E73", "#E69F00", "#CC79A7", "#0072B2", "#F0E442"]
+# Significant regions of a gap diagnosis: test above CAE warm, below cool.
+GAP_SHADES = {1: "#E69F00", -1: "#56B4E9"}
 
 
 def read_prediction_csv(path: str | os.PathLike) -> pd.DataFrame:
@@ -228,7 +233,131 @@ def plot_iso_summary(iso_table: str | os.PathLike, path: str | os.PathLike, wind
     return save_png(iso_summary_figure(read_iso_table(iso_table), window, score), path)
 
 
+def bias_map_figure(gap) -> Figure:
+    """The loading-branch bias over displacement and impact speed, non-significant cells hatched.
+
+    Parameters
+    ----------
+    gap : crashfuse.gap.GapMap
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Mean bias (test minus CAE) in g on displacement (mm) x impact speed (mph), a diverging
+        scale centred on 0 and clipped at the 99th percentile of ``|bias|``; non-significant
+        cells (``map_significant`` False) hatched, cells beyond the crush the tests reach at that
+        speed blank; each test a line at its speed up to its crush reach.
+    """
+    fig = _figure((7.2, 4.6))
+    ax = fig.add_subplot()
+    s_mm, v_mph = gap.s_grid / MM, gap.v0_grid / MPH
+    mean_g = np.ma.masked_where(~gap.map_covered, gap.map_mean / G0)
+    lim = float(np.percentile(np.abs(mean_g.compressed()), 99)) if mean_g.count() else 0.0
+    lim = lim if lim > 0 else 1.0  # a few extreme edge cells must not wash out the map
+    mesh = ax.pcolormesh(s_mm, v_mph, mean_g, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="nearest")
+    quiet = (~gap.map_significant & gap.map_covered).astype(float)
+    ax.contourf(s_mm, v_mph, quiet, levels=[0.5, 1.5], colors="none", hatches=["xx"])
+    ax.contour(s_mm, v_mph, quiet, levels=[0.5], colors="0.3", linewidths=0.6)
+    ax.scatter([t.profiles["loading"].x[-1] / MM for t in gap.tests], [t.v0 / MPH for t in gap.tests],
+               color="black", s=14, zorder=3, label="tests (speed, crush reached)")
+    for t in gap.tests:
+        ax.plot([0, t.profiles["loading"].x[-1] / MM], [t.v0 / MPH] * 2, color="black", lw=0.5, alpha=0.5)
+    fig.colorbar(mesh, ax=ax, label="bias, test - CAE (g)", extend="both")
+    ax.set_xlabel("displacement s (mm)")
+    ax.set_ylabel("impact speed (mph)")
+    ax.set_title("loading-branch bias; hatched: not significant (95 % band or ISO inner corridor)",
+                 fontsize="medium")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), frameon=False)
+    fig.tight_layout()
+    return fig
+
+
+def gap_pulses_figure(gap, t_end: float = T_END) -> Figure:
+    """Every test's pulse against its CAE pulse in time, its significant bias windows shaded.
+
+    Parameters
+    ----------
+    gap : crashfuse.gap.GapMap
+    t_end : float
+        Time span shown, s.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        One panel per test (deceleration in g against time in ms); shading orange where the test
+        decelerates significantly more than the CAE, blue where less (loading and unloading runs).
+    """
+    n = len(gap.tests)
+    cols = min(n, 4)
+    rows = -(-n // cols)
+    fig = _figure((3.2 * cols + 0.4, 2.5 * rows + 0.6))
+    axes = fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False).ravel()
+    for ax, t in zip(axes, gap.tests):
+        for _, lo, hi, sign in t.significant_windows():
+            ax.axvspan(lo / MS, hi / MS, color=GAP_SHADES[sign], alpha=0.3, lw=0)
+        keep, keep_cae = t.time <= t_end + 1e-12, t.cae_time <= t_end + 1e-12
+        ax.plot(t.time[keep] / MS, t.decel[keep] / G0, color=COLORS["test"], lw=1.1, label="test")
+        ax.plot(t.cae_time[keep_cae] / MS, t.cae_decel[keep_cae] / G0, color=COLORS["cae"], lw=1.0, ls="--",
+                label="CAE")
+        ax.set_title(f"{t.test_id}, {t.v0 / MPH:.1f} mph", fontsize="small")
+        ax.set_xlim(0, t_end / MS)
+        ax.grid(alpha=0.3)
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    for ax in axes[::cols]:
+        ax.set_ylabel("deceleration (g)")
+    for ax in axes[(rows - 1) * cols:]:
+        ax.set_xlabel("time (ms)")
+    handles = axes[0].get_legend_handles_labels()[0]
+    shades = [Patch(color=GAP_SHADES[k], alpha=0.3, label=f"test {w} CAE (95 %)") for k, w in ((1, "above"),
+                                                                                                (-1, "below"))]
+    fig.legend(handles=[*handles, *shades], loc="lower center", ncol=4, frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    return fig
+
+
+def plot_bias_map(gap, path: str | os.PathLike) -> Path:
+    """Write the `bias_map_figure` of a GapMap as a PNG at ``path`` (atomically)."""
+    return save_png(bias_map_figure(gap), path)
+
+
+def plot_gap_pulses(gap, path: str | os.PathLike) -> Path:
+    """Write the `gap_pulses_figure` of a GapMap as a PNG at ``path`` (atomically)."""
+    return save_png(gap_pulses_figure(gap), path)
+
+
 def _figure(size: tuple[float, float]) -> Figure:
     fig = Figure(figsize=size)
     FigureCanvasAgg(fig)
+    return fig
+
+
+def effect_pulses_figure(campaign, diagnosis, t_end: float = T_END) -> Figure:
+    """Every test of a gap diagnosis: measured, CAE and CAE + the chosen effects (held-out fits).
+
+    Parameters
+    ----------
+    campaign : crashfuse.io.campaign.Campaign
+    diagnosis : crashfuse.diagnose.Diagnosis
+    """
+    ids = diagnosis.case.test_ids
+    cols = min(4, len(ids))
+    rows = -(-len(ids) // cols)
+    fig = _figure((3.2 * cols, 2.4 * rows))
+    effects = " + ".join(diagnosis.verdict) or "no effect"
+    for i, t in enumerate(ids):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        test = campaign.pulses[t].after_contact()
+        ax.plot(test.time / MS, test.decel / G0, color=COLORS["test"], lw=1.0, label="test")
+        time = diagnosis.case.time / MS
+        ax.plot(time, diagnosis.predictions["CAE"][i] / G0, color=COLORS["cae"], lw=1.0, label="CAE")
+        ax.plot(time, diagnosis.predictions["CAE+effects"][i] / G0, color=COLORS["mean"], lw=1.0,
+                label=f"CAE + {effects}")
+        ax.set_xlim(0, t_end / MS)
+        ax.set_title(t, fontsize=8)
+        ax.tick_params(labelsize=7)
+    fig.axes[0].legend(fontsize=6)
+    fig.supxlabel("time since contact (ms)", fontsize=8)
+    fig.supylabel("deceleration (g)", fontsize=8)
+    fig.tight_layout()
     return fig

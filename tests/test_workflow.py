@@ -229,6 +229,10 @@ def test_end_to_end_on_the_test_config(tmp_path):
     assert len(runs) == n_parents + len(logged["folds"])
     assert sum(r.data.tags.get("crashfuse.role") == "fold" for r in runs) == len(logged["folds"])
 
+    diagnosis = json.loads((results / "diagnosis" / "diagnosis.json").read_text())
+    assert {"verdict", "effects", "regions", "shrink"} <= set(diagnosis)
+    assert {e["effect"] for e in diagnosis["effects"]} == set(config["diagnosis"]["effects"])
+
     again = snakemake(tmp_path, "-n", configfile=TEST_CONFIG)
     assert "Nothing to be done" in again.stdout + again.stderr
 

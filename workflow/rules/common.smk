@@ -80,7 +80,7 @@ def fold_files(pattern):
 
 
 def all_outputs(wildcards):
-    """The final targets: the table, its renderings, the summary figure and the tracking record."""
+    """The final targets: the table, its renderings, the summary figure, tracking and diagnosis."""
     out = [
         f"{RESULTS}/iso_table.csv",
         f"{RESULTS}/tables/summary.md",
@@ -89,4 +89,8 @@ def all_outputs(wildcards):
     out += fold_files(fold_path("{test}.png"))
     if config["tracking"]["enabled"]:
         out.append(f"{RESULTS}/tracking.json")
+    if config["diagnosis"]["enabled"]:
+        out.append(f"{RESULTS}/diagnosis/diagnosis.json")
+    if config["validation"]["enabled"]:
+        out.append(f"{RESULTS}/diagnosis/validation/validation.csv")
     return out

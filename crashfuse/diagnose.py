@@ -1,0 +1,375 @@
+"""Sim-to-real gap diagnosis (issue 6): where the gap lies, which effect causes it, how far it shrinks.
+
+1. Where: :func:`crashfuse.gap.locate_gap` (the bias field and its significant regions).
+2. Which: every catalogue effect of :mod:`crashfuse.effects` is a force law added to the CAE
+   dynamics with a few physical parameters, fitted to the tests (:mod:`crashfuse.effect_fit`).
+   Effects are compared on held-out evidence: the leave-one-test-out mean squared error of the
+   CAE + effects rollout against the held-out test over its record. Greedy forward selection: each
+   round fits every remaining effect together with those already chosen (all folds at once) and
+   adds the best one only if it lowers the held-out error by at least ``threshold`` (relative)
+   AND on at least ``min_wins`` of the folds; otherwise the search stops - possibly with nothing
+   chosen, when no effect explains the gap beyond what measurement noise and the CAE model's own
+   scatter do.
+3. How far it shrinks: leave-one-test-out ISO/TS 18571 scores for CAE alone, CAE + effects,
+   CAE + effects + GMM-GPR residual (the method on a campaign whose CAE runs were replaced by the
+   CAE + effects rollouts of each fold) and GMM-GPR alone.
+
+Parameter uncertainty is the jackknife standard error over the leave-one-test-out fits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from crashfuse.effect_fit import DT, FoldFits, TestCase, effect_params, fit_folds, loto_sets, predict, test_case
+from crashfuse.effects import EFFECTS, V_REF, check_effect, headline
+from crashfuse.errors import InputError
+from crashfuse.io.atomic import atomic_path, write_text
+from crashfuse.io.campaign import Campaign
+from crashfuse.iso18571 import iso_score
+from crashfuse.pulse import Pulse
+from crashfuse.report import SCORES, WINDOWS, window_bounds
+from crashfuse.surrogate import CAESurrogate
+from crashfuse.units import G0, MPH, MS
+
+THRESHOLD = 0.10  # relative drop of the held-out mean squared error an effect must bring
+MIN_WINS = 2 / 3  # share of folds whose held-out error must drop
+SHRINK_MODELS = ("CAE", "CAE+effects", "CAE+effects+GMM-GPR", "GMM-GPR")
+
+
+@dataclasses.dataclass
+class Candidate:
+    """One effect's evidence from the greedy round that last evaluated it."""
+
+    effect: str
+    round: int
+    fits: FoldFits
+    heldout_mse: np.ndarray  # (n_tests,) (m/s^2)^2, fold i predicting test i
+    reference_mse: np.ndarray  # the same for the effects chosen before this round
+    chosen: bool = False
+
+    @property
+    def ratio(self) -> float:
+        return float(self.heldout_mse.mean() / self.reference_mse.mean())
+
+    @property
+    def wins(self) -> int:
+        return int((self.heldout_mse < self.reference_mse).sum())
+
+
+@dataclasses.dataclass
+class Diagnosis:
+    """The result of :func:`diagnose` (``to_json`` gives diagnosis.json)."""
+
+    verdict: list
+    candidates: dict
+    regions: dict
+    shrink: pd.DataFrame  # test_id, model, window_ms, overall, corridor, phase, magnitude, slope
+    case: TestCase
+    predictions: dict  # model -> (n_tests, n_t) decel m/s^2 on case.time (CAE, CAE+effects)
+    settings: dict
+    holdout: bool
+
+    def to_json(self) -> dict:
+        mean = self.shrink.groupby(["model", "window_ms"], sort=False)["overall"].mean()
+        return {
+            "schema": "crashfuse.diagnosis/1",
+            "verdict": list(self.verdict),
+            "holdout": self.holdout,
+            "effects": [_candidate_json(c, self.case) for c in self.candidates.values()],
+            "regions": self.regions,
+            "shrink": {m: {w: float(mean[(m, w)]) for w in WINDOWS if (m, w) in mean.index}
+                       for m in self.shrink["model"].unique()},
+            "shrink_per_test": self.shrink.to_dict(orient="records"),
+            "settings": self.settings,
+        }
+
+
+def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, min_wins: float = MIN_WINS,
+             k: int = 1, inputs: str = "paper", n_samples: int = 200, random_state: int = 0,
+             surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,
+             progress=print) -> Diagnosis:
+    """Diagnose the gap between a campaign's CAE runs and its tests.
+
+    Parameters
+    ----------
+    campaign : Campaign
+        Tests (each with a companion CAE run, or a surrogate from the CAE runs) and CAE runs.
+    effects : sequence of str
+        Candidate effects (catalogue names).
+    threshold : float
+        Minimum relative drop of the held-out mean squared error for an effect to be added.
+    min_wins : float
+        Minimum share of folds whose held-out error must drop.
+    k, inputs : int, str
+        The GMM-GPR residual model (mixture size, input mode) of the shrink table.
+    n_samples : int
+        Monte Carlo samples of the GMM-GPR predictions.
+    random_state : int
+    surrogate : CAESurrogate, optional
+        Fitted on the CAE runs; fitted here when needed.
+    in_sample : bool
+        Allow a single-test campaign: evidence is then in-sample (no hold-out), flagged.
+    residual_model : bool
+        Compute the two GMM-GPR rows of the shrink table (the slow part).
+    progress : callable or None
+
+    Raises
+    ------
+    InputError
+        Fewer than two tests (unless ``in_sample``), no CAE runs, unknown effects, bad settings.
+    """
+    say = progress or (lambda line: None)
+    effects = [check_effect(e, "--effects") for e in dict.fromkeys(effects)]
+    _check(campaign, threshold, min_wins, in_sample)
+    case = test_case(campaign, surrogate, random_state)
+    n = len(case.test_ids)
+    holdout = n >= 2
+    sets = loto_sets(n) if holdout else [[0], [0]]
+    cae = fit_folds(case, (), sets)
+    chosen, candidates, current = [], {}, cae
+    reference = _heldout(case, cae)
+    say(f"diagnose: {n} tests, CAE held-out rms {_rms_g(reference):.3f} g")
+    for rnd in range(1, len(effects) + 1):
+        remaining = [e for e in effects if e not in chosen]
+        if not remaining:
+            break
+        for e in remaining:
+            fits = fit_folds(case, (*chosen, e), sets, start=_start(case, current, e))
+            candidates[e] = Candidate(e, rnd, fits, _heldout(case, fits), reference)
+            c = candidates[e]
+            say(f"  round {rnd} +{e}: held-out rms {_rms_g(c.heldout_mse):.3f} g (x{c.ratio:.3f} MSE), "
+                f"better on {c.wins}/{n}")
+        best = min(remaining, key=lambda e: candidates[e].ratio)
+        c = candidates[best]
+        if c.ratio > 1.0 - threshold or c.wins < math.ceil(min_wins * n):
+            break
+        c.chosen = True
+        chosen.append(best)
+        current, reference = c.fits, c.heldout_mse
+    say(f"diagnose: verdict {chosen or 'none'}")
+    preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
+             "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
+    shrink = _shrink(campaign, case, preds, current, chosen, k, inputs, n_samples, random_state, surrogate,
+                     holdout and residual_model, say)
+    settings = dict(effects=list(effects), threshold=threshold, min_wins=min_wins, k=k, inputs=inputs,
+                    n_samples=n_samples, random_state=random_state, rollout_dt_s=DT)
+    return Diagnosis(chosen, candidates, {}, shrink, case, preds, settings, holdout)
+
+
+def _check(campaign, threshold, min_wins, in_sample):
+    if not (0 <= threshold < 1):
+        raise InputError(f"expected a threshold in [0, 1), got {threshold}", field="--threshold")
+    if not (0 < min_wins <= 1):
+        raise InputError(f"expected min_wins in (0, 1], got {min_wins}", field="--min-wins")
+    if len(campaign.tests) < 2 and not in_sample:
+        raise InputError(f"the campaign has {len(campaign.tests)} test(s): a held-out diagnosis needs at least 2 "
+                         f"(pass --in-sample to fit a single test without hold-out)", campaign.root, "source")
+
+
+def _fold_rows(n: int) -> np.ndarray:
+    """Problem index predicting test i: its own leave-one-out fold (the in-sample fit for one test)."""
+    return np.arange(n)
+
+
+def _heldout(case: TestCase, fits: FoldFits) -> np.ndarray:
+    n = len(case.test_ids)
+    return predict(case, fits, _fold_rows(n), range(n))[1]
+
+
+def _rms_g(mse: np.ndarray) -> float:
+    return float(np.sqrt(mse.mean()) / G0)
+
+
+def _start(case, current: FoldFits, effect: str):
+    """The chosen effects' fitted values plus the new effect's first starting point, per training set."""
+    new = [p.start[0] for p in effect_params(case, (effect,))]
+    if current.theta.shape[1] == 0:
+        return None
+    return np.hstack([current.theta, np.tile(new, (current.theta.shape[0], 1))])
+
+
+def _shrink(campaign, case, preds, fits, chosen, k, inputs, n_samples, random_state, surrogate, residual, say):
+    rows = []
+    for model, decel in preds.items():
+        for i, t in enumerate(case.test_ids):
+            rows += _iso_rows(campaign.pulses[t], case.time, decel[i], t, model)
+    if residual:
+        from crashfuse.evaluate import evaluate
+        surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
+        label = f"K{k}"
+        say("diagnose: GMM-GPR alone (leave-one-test-out)")
+        plain = evaluate(campaign, ks=(k,), inputs=(inputs,), n_samples=n_samples, random_state=random_state,
+                         n_jobs=1, surrogate=surrogate, progress=None, use_companion=True).iso_table
+        rows += _relabel(plain, label, "GMM-GPR")
+        say("diagnose: CAE + effects + GMM-GPR residual (leave-one-test-out)")
+        for i, t in enumerate(case.test_ids):
+            mod = _effects_campaign(campaign, case, fits, i)
+            res = evaluate(mod, ks=(k,), inputs=(inputs,), n_samples=n_samples, random_state=random_state,
+                           n_jobs=1, surrogate=surrogate, holdout=[t], progress=None, use_companion=True).iso_table
+            rows += _relabel(res, label, "CAE+effects+GMM-GPR")
+    return pd.DataFrame(rows, columns=["test_id", "model", "window_ms", *SCORES])
+
+
+def _relabel(iso: pd.DataFrame, label: str, name: str) -> list[dict]:
+    part = iso[iso["model"] == label].drop(columns=["inputs"]).assign(model=name)
+    return part.to_dict(orient="records")
+
+
+def _iso_rows(test: Pulse, t, decel, test_id, model) -> list[dict]:
+    test = test.after_contact()
+    out = []
+    for w in WINDOWS:
+        lo, hi = window_bounds(w)
+        out.append(dict(test_id=test_id, model=model, window_ms=w,
+                        **iso_score(test.time, test.decel, t, decel, lo * MS, hi * MS)))
+    return out
+
+
+def _effects_campaign(campaign: Campaign, case: TestCase, fits: FoldFits, fold: int) -> Campaign:
+    """The campaign with every test's CAE run replaced by its CAE + effects rollout with fold ``fold``'s fit."""
+    n = len(case.test_ids)
+    decel, _ = predict(case, fits, np.full(n, fold), range(n))
+    frame = campaign.conditions.copy()
+    pulses = dict(campaign.pulses)
+    new_rows = []
+    for i, t in enumerate(case.test_ids):
+        test = campaign.pulses[t]
+        run_id = f"{t}__cae_effects"
+        pulses[run_id] = Pulse(case.time, decel[i], test.v0, test.front_weight, test.rear_weight, run_id, "cae",
+                               meta={**{k: test.meta.get(k) for k in ("powertrain", "drive")}, "cfc": 60})
+        new_rows.append({**frame.loc[frame["run_id"] == t].iloc[0].to_dict(), "run_id": run_id, "source": "cae",
+                         "cae_run_id": None, "pulse_path": None})
+        frame.loc[frame["run_id"] == t, "cae_run_id"] = run_id
+    frame = pd.concat([frame, pd.DataFrame(new_rows)], ignore_index=True)
+    return Campaign(frame, pulses, campaign.root)
+
+
+def _candidate_json(c: Candidate, case: TestCase) -> dict:
+    all_fit = c.fits.theta[-1]
+    folds = c.fits.theta[:-1]
+    n = folds.shape[0]
+    se = np.sqrt((n - 1) / n * ((folds - folds.mean(axis=0)) ** 2).sum(axis=0)) if n > 1 else np.full(all_fit.size,
+                                                                                                        np.nan)
+    # A value at a bound means the law could not fit within physical limits: read it with care.
+    params = {p.name: {"value": float(v), "jackknife_se": _num(s), "unit": p.unit,
+                       "at_bound": bool(np.isclose(v, p.lower, rtol=1e-3) or np.isclose(v, p.upper, rtol=1e-3))}
+              for p, v, s in zip(c.fits.params, all_fit, se)}
+    own = {k: v["value"] for k, v in params.items() if k.startswith(c.effect + ".")}
+    return {
+        "effect": c.effect, "chosen": c.chosen, "params": params,
+        "headline": headline(c.effect, own),
+        "evidence": {"round": c.round, "heldout_mse_ratio": c.ratio, "folds_better": c.wins,
+                     "n_folds": int(c.heldout_mse.size), "heldout_rms_g": _rms_g(c.heldout_mse),
+                     "reference_rms_g": _rms_g(c.reference_mse), "fitted_with": list(c.fits.effects)},
+        "reading": reading(c.effect, own, case),
+    }
+
+
+def _num(x):
+    return None if not np.isfinite(x) else float(x)
+
+
+def reading(effect: str, p: dict, case: TestCase) -> str:
+    """A plain-language sentence for a fitted effect, at the campaign's highest test speed."""
+    v = float(case.plant.v0.max())
+    mass = float(case.plant.mass.mean())
+    at = f"{v / MPH:.0f} mph"
+    if effect == "strain_rate":
+        gain = (v / p["strain_rate.d"]) ** (1 / p["strain_rate.q"])
+        return (f"the crush force grows with crush speed: by about {100 * gain:.0f} % at the {at} impact speed "
+                f"({100 * (V_REF / p['strain_rate.d']) ** (1 / p['strain_rate.q']):.0f} % at {V_REF:.0f} m/s)")
+    if effect == "damping":
+        return (f"a viscous crush damping of {p['damping.c'] / 1e3:.1f} kN s/m adds about "
+                f"{p['damping.c'] * v / mass / G0:.1f} g at first contact at {at}")
+    if effect == "mass":
+        return f"the decelerating mass is about {p['mass.extra']:.0f} kg more than the nominal test weight"
+    if effect == "unloading":
+        return (f"after maximum crush the force falls along a power law (exponent {p['unloading.n']:.2f}) over an "
+                f"elastic spring-back of {1e3 * p['unloading.d0']:.1f} mm plus 1 mm per "
+                f"{p['unloading.k'] / 1e3 / 1e3:.0f} kN of peak force")
+    parts = [f"{p[f'powertrain.mass[{lab}]']:.0f} kg ({lab}) after {1e3 * p[f'powertrain.gap[{lab}]']:.0f} mm"
+             for lab in case.plant.labels]
+    return (f"a powertrain mass is stopped by the barrier once the crush closes its gap: {'; '.join(parts)}; "
+            f"its mounts yield at {p['powertrain.f_mount'] / 1e3:.0f} kN")
+
+
+def write_diagnosis(diag: Diagnosis, out, campaign: Campaign, gap=None) -> Path:
+    """Write ``diagnosis.json``, ``diagnosis.md``, ``shrink.csv`` and the figures into ``out``.
+
+    Every file is written atomically; ``diagnosis.json`` last, so its presence marks a complete
+    diagnosis.
+    """
+    from crashfuse import plots
+
+    out = Path(out)
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    js = diag.to_json()
+    figures = {"effects.png": plots.effect_pulses_figure(campaign, diag)}
+    if gap is not None:
+        figures.update({"bias_map.png": plots.bias_map_figure(gap), "gap_pulses.png": plots.gap_pulses_figure(gap)})
+    for name, fig in figures.items():
+        plots.save_png(fig, out / "figures" / name)
+    js["figures"] = [f"figures/{name}" for name in figures]
+    with atomic_path(out / "shrink.csv") as tmp:
+        diag.shrink.to_csv(tmp, index=False, float_format="%.6f", lineterminator="\n")
+    write_text(out / "diagnosis.md", markdown(js))
+    write_text(out / "diagnosis.json", json.dumps(js, indent=2, allow_nan=False) + "\n")
+    return out
+
+
+def markdown(js: dict) -> str:
+    """A readable report of a diagnosis.json dict."""
+    verdict = ", ".join(js["verdict"]) or "none: no catalogue effect explains the gap beyond noise"
+    lines = ["# Sim-to-real gap diagnosis", "", f"**Verdict:** {verdict}", ""]
+    if not js["holdout"]:
+        lines += ["**One test, no hold-out:** the evidence below is in-sample fit, not prediction.", ""]
+    lines += ["## Which effect", "",
+              "| effect | chosen | round | held-out MSE ratio | folds better | headline | reading |",
+              "|---|---|---|---|---|---|---|"]
+    for e in js["effects"]:
+        ev = e["evidence"]
+        head = ", ".join(f"{k} = {v:.4g}" for k, v in e["headline"].items())
+        lines.append(f"| {e['effect']} | {'yes' if e['chosen'] else 'no'} | {ev['round']} | "
+                     f"{ev['heldout_mse_ratio']:.3f} | {ev['folds_better']}/{ev['n_folds']} | {head} | {e['reading']} |")
+    lines += ["", "Fitted parameters (all tests; jackknife standard error over the folds):", ""]
+    for e in js["effects"]:
+        ps = "; ".join(f"{k} = {v['value']:.4g} {v['unit']}" + (f" (se {v['jackknife_se']:.2g})"
+                                                               if v["jackknife_se"] is not None else "")
+                       + (" **at its bound**" if v["at_bound"] else "") for k, v in e["params"].items())
+        lines.append(f"- {e['effect']} (fitted with {', '.join(e['evidence']['fitted_with'])}): {ps}")
+    lines += ["", "## How far it shrinks (mean ISO/TS 18571 overall, held-out)", "",
+              "| model | " + " | ".join(f"{w} ms" for w in WINDOWS) + " |", "|---|" + "---|" * len(WINDOWS)]
+    for model, row in js["shrink"].items():
+        lines.append(f"| {model} | " + " | ".join(f"{row[w]:.3f}" if w in row else "" for w in WINDOWS) + " |")
+    if js["regions"]:
+        lines += ["", *_regions_markdown(js["regions"])]
+    return "\n".join(lines) + "\n"
+
+
+def _regions_markdown(regions: dict) -> list[str]:
+    """The significant intervals, the sub-score carrying the gap per window and the speed regimes."""
+    lines = ["## Where the gap lies (95 % band of the bias excludes zero)", "",
+             "| rank | branch | interval (mm) | peak (mm) | direction | share of squared gap | carried by | "
+             "time windows (ms) |", "|---|---|---|---|---|---|---|---|"]
+    for iv in regions["intervals"]:
+        wins = ", ".join(f"{w['test_id']} {w['t_lo_ms']:.0f}-{w['t_hi_ms']:.0f}" for w in iv["windows"]
+                         if w.get("significant"))
+        carrier = (iv.get("subscores") or {}).get("ranking", ["-"])[:1]
+        lines.append(f"| {iv['rank']} | {iv['branch']} | {1e3 * iv['x_lo_m']:.0f}-{1e3 * iv['x_hi_m']:.0f} | "
+                     f"{1e3 * iv['x_peak_m']:.0f} | {iv['direction']} | {iv['share']:.3f} | "
+                     f"{', '.join(carrier)} | {wins} |")
+    lines += ["", "| window (ms) | sub-scores by mean deficit (CAE vs test) |", "|---|---|"]
+    for w, row in regions["windows"].items():
+        lines.append(f"| {w} | " + ", ".join(f"{k} {row['mean_deficit'][k]:.3f}" for k in row["ranking"]) + " |")
+    lines += ["", "| regime | speed (mph) | tests | mean squared bias (g^2) |", "|---|---|---|---|"]
+    for r in regions["regimes"]:
+        lines.append(f"| {r['rank']} | {r['v0_lo_mph']:.1f}-{r['v0_hi_mph']:.1f} | {' '.join(r['tests'])} | "
+                     f"{r['mean_sq_bias_g2']:.1f} |")
+    return lines

@@ -1,0 +1,308 @@
+"""Fitting effect parameters to tests: CAE + effect rollouts against measured pulses (issue 6 point 2).
+
+A :class:`TestCase` holds every test of a campaign with its CAE curve (the companion run where the
+test names one, else the CAE surrogate at its condition) and its measured deceleration on the
+rollout's time grid. :func:`fit_folds` fits the parameters of a set of effects for many training
+sets at once - the leave-one-test-out folds plus the all-tests fit - by minimising the squared
+difference between the CAE + effects rollout and the measured pulse over the record
+(``sum_t (a_pred - a_test)^2``), with a Levenberg-Marquardt solver vectorised over the folds,
+their starting points and the finite-difference Jacobian columns: every iteration is one
+batched rollout (:func:`crashfuse.effects.simulate`). Parameters are fitted in log space
+within their physical bounds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from crashfuse.effects import Plant, Param, curve_plant, parameters, simulate
+from crashfuse.errors import InputError
+from crashfuse.io.campaign import Campaign
+from crashfuse.surrogate import CAECurve, CAESurrogate
+
+DT = 1.6e-4  # s, rollout step of the fits (2 samples of a 12.5 kHz campaign; Verlet error << noise)
+RECORD = 0.1  # s, longest record compared
+FD_STEP = 1e-3  # finite-difference step in log-parameter space
+MAX_ITER = 30
+RTOL = 1e-5  # a set has converged when an accepted step lowers its cost by less than this fraction
+S_HI_FACTOR = 1.6  # CAE tables reach this factor beyond the longest CAE/test crush
+
+
+@dataclasses.dataclass(frozen=True)
+class TestCase:
+    """The tests of a campaign, ready for batched effect fits.
+
+    Attributes
+    ----------
+    test_ids : list of str
+    plant : crashfuse.effects.Plant
+        One row per test: its CAE curve, nominal mass, powertrain label.
+    target : ndarray, shape (n_tests, n_t)
+        Measured deceleration (m/s^2) at ``time`` (0 where ``mask`` is False).
+    mask : ndarray of bool, shape (n_tests, n_t)
+        True inside each test's record.
+    time : ndarray, shape (n_t,)
+        Rollout times in s (step :data:`DT`).
+    cae_source : list of str
+        ``companion`` or ``surrogate`` per test.
+    """
+
+    test_ids: list
+    plant: Plant
+    target: np.ndarray
+    mask: np.ndarray
+    time: np.ndarray
+    cae_source: list
+
+    @property
+    def n_steps(self) -> int:
+        return self.time.size - 1
+
+
+def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_state: int = 0) -> TestCase:
+    """Every test of ``campaign`` with its CAE curve and measured pulse on the rollout grid.
+
+    The CAE surrogate is fitted (on the CAE runs only) when a test names no companion run or its
+    companion never reaches zero velocity (the unloading branch then comes from the surrogate).
+
+    Raises
+    ------
+    InputError
+        No tests, no CAE runs, or a test whose CAE curve cannot be formed.
+    """
+    if not campaign.tests:
+        raise InputError("the campaign has no tests: nothing to diagnose", campaign.root, "source")
+    if not campaign.cae:
+        raise InputError("the campaign has no CAE runs: the diagnosis explains a CAE model's gap", campaign.root,
+                         "source")
+    curves, sources = [], []
+    for t in campaign.tests:
+        curve, surrogate, source = _cae_curve(campaign, t, surrogate, random_state)
+        curves.append(curve)
+        sources.append(source)
+    pulses = [campaign.pulses[t] for t in campaign.tests]
+    record = min(RECORD, min(p.time[-1] for p in pulses))
+    time = np.arange(int(np.floor(record / DT + 1e-9)) + 1) * DT
+    target = np.array([np.interp(time, p.time, p.decel) for p in pulses])
+    mask = np.array([time <= p.time[-1] + 1e-12 for p in pulses])
+    s_hi = S_HI_FACTOR * max(max(c.s[-1], c.s_max) for c in curves)
+    labels = [_label(campaign, t) for t in campaign.tests]
+    plant = curve_plant(curves, [p.mass for p in pulses], labels, s_hi)
+    return TestCase(list(campaign.tests), plant, target, mask, time, sources)
+
+
+def _label(campaign: Campaign, test_id: str) -> str:
+    row = campaign.conditions.loc[campaign.conditions["run_id"] == test_id].iloc[0]
+    value = row.get("powertrain")
+    return "all" if value is None or (isinstance(value, float) and np.isnan(value)) else str(value)
+
+
+def _cae_curve(campaign: Campaign, test_id: str, surrogate, random_state):
+    pulse = campaign.pulses[test_id]
+    companion = campaign.companion(test_id)
+    if companion is not None:
+        curve = CAECurve.from_pulse(companion)
+        if curve.u is not None:
+            return curve, surrogate, "companion"
+    if surrogate is None:
+        surrogate = CAESurrogate(random_state=random_state).fit(campaign)
+    stand_in = surrogate.curve(pulse.v0, pulse.front_weight, pulse.rear_weight, pulse.meta.get("powertrain"),
+                               pulse.meta.get("drive"))
+    if companion is not None:
+        return CAECurve.from_pulse(companion, stand_in), surrogate, "companion"
+    return stand_in, surrogate, "surrogate"
+
+
+@dataclasses.dataclass(frozen=True)
+class FoldFits:
+    """Fitted parameters of one effect set for several training sets.
+
+    Attributes
+    ----------
+    effects : tuple of str
+    params : tuple of Param
+    theta : ndarray, shape (n_problems, n_params)
+        Best parameters (SI) per training set.
+    cost : ndarray, shape (n_problems,)
+        Mean squared training residual in (m/s^2)^2.
+    """
+
+    effects: tuple
+    params: tuple
+    theta: np.ndarray
+    cost: np.ndarray
+
+    def theta_dict(self, rows: np.ndarray) -> dict:
+        """Per-sample parameter arrays for samples fitted by problems ``rows``."""
+        return {p.name: self.theta[rows, j] for j, p in enumerate(self.params)}
+
+
+def effect_params(case: TestCase, effects) -> tuple[Param, ...]:
+    """All fitted parameters of ``effects`` for this case (powertrain: per label)."""
+    hint = float(case.plant.mass.min())
+    return tuple(p for e in effects for p in parameters(e, case.plant.labels, hint))
+
+
+def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = None) -> FoldFits:
+    """Fit ``effects`` on each training set (vectorised Levenberg-Marquardt, multi-start).
+
+    Parameters
+    ----------
+    case : TestCase
+    effects : sequence of str
+        Catalogue effects fitted together.
+    train_sets : sequence of sequence of int
+        Test indices of each training set (e.g. the leave-one-out folds and all tests).
+    start : ndarray, shape (n_sets, n_params), optional
+        The starting point per set (SI), e.g. the fit of a smaller effect set plus the new
+        effect's first listed start; without it every listed start is tried.
+
+    Returns
+    -------
+    FoldFits
+    """
+    params = effect_params(case, effects)
+    if not params:
+        return FoldFits(tuple(effects), (), np.empty((len(train_sets), 0)), _costs(case, (), train_sets, None))
+    starts = _starts(params, len(train_sets), start)
+    n_start = starts.shape[0]
+    sets = [list(t) for t in train_sets] * n_start
+    z = np.log(np.concatenate(starts))
+    z, cost = _levenberg_marquardt(case, tuple(effects), params, sets, z)
+    cost = cost.reshape(n_start, len(train_sets))
+    best = np.argmin(cost, axis=0)
+    z = z.reshape(n_start, len(train_sets), -1)[best, np.arange(len(train_sets))]
+    return FoldFits(tuple(effects), params, np.exp(z), cost[best, np.arange(len(train_sets))])
+
+
+def _starts(params, n_sets: int, extra) -> np.ndarray:
+    """Starting points, shape (n_start, n_sets, n_params): ``extra``, else each parameter's listed starts in turn."""
+    if extra is not None:
+        return np.asarray(extra, float)[None]
+    n = max(len(p.start) for p in params)
+    base = np.array([[p.start[i % len(p.start)] for p in params] for i in range(n)])
+    return np.repeat(base[:, None, :], n_sets, axis=1)
+
+
+def _bounds(params):
+    return np.log([p.lower for p in params]), np.log([p.upper for p in params])
+
+
+def _levenberg_marquardt(case, effects, params, sets, z):
+    """Minimise each set's squared residual over log-parameters ``z`` (n_sets, d); all sets at once."""
+    lo, hi = _bounds(params)
+    z = np.clip(z, lo, hi)
+    d = z.shape[1]
+    lam = np.full(len(sets), 1e-2)
+    res, jac = _residuals_and_jacobian(case, effects, params, sets, z)
+    cost = np.array([r @ r for r in res])
+    active = np.ones(len(sets), bool)
+    for _ in range(MAX_ITER):
+        steps = np.zeros_like(z)
+        for i in np.flatnonzero(active):
+            a, g = jac[i].T @ jac[i], jac[i].T @ res[i]
+            steps[i] = -np.linalg.lstsq(a + lam[i] * np.diag(np.diag(a)) + 1e-12 * np.eye(d) * np.trace(a), g, rcond=None)[0]
+        trial = np.clip(z + steps, lo, hi)
+        trial_res = _residuals(case, effects, params, sets, trial, np.flatnonzero(active))
+        new_cost = np.array([r @ r if r is not None else np.inf for r in trial_res])
+        better = active & (new_cost < cost)
+        converged = active & better & (cost - new_cost < RTOL * cost)
+        z[better] = trial[better]
+        cost[better] = new_cost[better]
+        lam = np.where(better, lam / 3.0, lam * 4.0)
+        active &= ~converged & (lam < 1e8)
+        if not active.any():
+            break
+        res_new, jac_new = _residuals_and_jacobian(case, effects, params, sets, z, np.flatnonzero(better & active))
+        for i in np.flatnonzero(better & active):
+            res[i], jac[i] = res_new[i], jac_new[i]
+    n_res = np.array([case.mask[s].sum() for s in sets])
+    return z, cost / n_res
+
+
+def _samples(params, sets, z, which):
+    """Rows and parameter arrays of a batched rollout: every set in ``which`` times every test in it."""
+    rows, owner, values = [], [], []
+    for i in which:
+        rows.extend(sets[i])
+        owner.extend([i] * len(sets[i]))
+        values.append(np.repeat(z[i][None], len(sets[i]), axis=0))
+    return np.array(rows, int), np.array(owner, int), np.exp(np.concatenate(values))
+
+
+def _run(case, effects, params, rows, theta):
+    plant = case.plant.subset(rows)
+    traj = simulate(plant, effects, {p.name: theta[:, j] for j, p in enumerate(params)}, DT, case.n_steps)
+    return np.where(case.mask[rows], traj.decel - case.target[rows], 0.0)
+
+
+def _residuals(case, effects, params, sets, z, which):
+    """Residual vector per set in ``which`` (None elsewhere), in m/s^2."""
+    out = [None] * len(sets)
+    if len(which) == 0:
+        return out
+    rows, owner, theta = _samples(params, sets, z, which)
+    diff = _run(case, effects, params, rows, theta)
+    for i in which:
+        out[i] = diff[owner == i].ravel()
+    return out
+
+
+def _residuals_and_jacobian(case, effects, params, sets, z, which=None):
+    """Residuals and forward-difference Jacobians (in log-parameters) of the sets in ``which``."""
+    which = np.arange(len(sets)) if which is None else np.asarray(which)
+    d = z.shape[1]
+    shifted = [z] + [z + FD_STEP * np.eye(d)[j] for j in range(d)]
+    stacked = np.concatenate(shifted)  # (d+1) blocks of len(sets)
+    n = len(sets)
+    big_sets = sets * (d + 1)
+    big_which = np.concatenate([which + k * n for k in range(d + 1)])
+    res = _residuals(case, effects, params, big_sets, stacked, big_which)
+    out_res, out_jac = [None] * n, [None] * n
+    for i in which:
+        base = res[i]
+        out_res[i] = base
+        out_jac[i] = np.stack([(res[i + (j + 1) * n] - base) / FD_STEP for j in range(d)], axis=1)
+    return out_res, out_jac
+
+
+def _costs(case, effects, train_sets, theta):
+    """Mean squared residual of each training set with no fitted parameters."""
+    out = []
+    for rows in train_sets:
+        diff = _run(case, effects, (), np.asarray(rows, int), np.empty((len(rows), 0)))
+        out.append(float((diff ** 2).sum() / case.mask[list(rows)].sum()))
+    return np.array(out)
+
+
+def predict(case: TestCase, fits: FoldFits, problem_rows, test_rows):
+    """Roll out test ``test_rows[i]`` with the parameters of problem ``problem_rows[i]``.
+
+    Returns
+    -------
+    decel : ndarray, shape (len(test_rows), n_t)
+        Deceleration in m/s^2 at ``case.time``.
+    mse : ndarray, shape (len(test_rows),)
+        Mean squared difference from the measured pulse inside the record, (m/s^2)^2.
+    """
+    test_rows = np.asarray(test_rows, int)
+    theta = fits.theta[np.asarray(problem_rows, int)]
+    plant = case.plant.subset(test_rows)
+    traj = simulate(plant, fits.effects, {p.name: theta[:, j] for j, p in enumerate(fits.params)}, DT, case.n_steps)
+    m = case.mask[test_rows]
+    diff = np.where(m, traj.decel - case.target[test_rows], 0.0)
+    return traj.decel, (diff ** 2).sum(axis=1) / m.sum(axis=1)
+
+
+def loto_sets(n_tests: int) -> list[list[int]]:
+    """The leave-one-test-out training sets, then the all-tests set."""
+    every = list(range(n_tests))
+    return [[j for j in every if j != i] for i in every] + [every]
+
+
+def effect_sets(chosen, candidates):
+    """Candidate effect sets of a greedy round: ``chosen`` plus one more each."""
+    return [(*chosen, c) for c in candidates if c not in chosen]
+

@@ -1,0 +1,270 @@
+"""Physical effects a CAE model may miss, as force laws added to the CAE dynamics in a rollout.
+
+This is the diagnosis's own implementation of the catalogue (issue 6): textbook laws written in
+terms of the rollout's state, independent of how any simulator produced the campaign. Names
+follow the catalogue (``damping``, ``strain_rate``, ``powertrain``, ``unloading``, ``mass``) and
+parameters are ``effect.param`` in SI.
+
+The force balance of one sample (vehicle of nominal mass ``M``, the test's axle masses) at a step
+with displacement ``s``, velocity ``v`` (m/s, positive forward), maximum crush ``s_max`` and
+unloading coordinate ``u = s_max - s``::
+
+    a = (F_crush + F_extra) / M_eff
+
+* ``F_crush`` is the CAE model's crush force: ``M a_CAE(s)`` on loading; on unloading the CAE
+  run's unloading curve with its stiffness kept, started from the force reached at the rollout's
+  own maximum crush (which moves when an effect changes the pulse): with
+  ``r = a_CAE(s_max) / a_CAE,u(0)``, ``F_crush = M r a_CAE,u(u / r)`` - force and elastic
+  spring-back both scale with the peak force, as for a linear elastic unloading.
+* ``F_extra`` collects added forces (0 for the CAE model); ``M_eff`` starts at ``M``.
+
+The laws (each one modifies the balance; their order does not matter):
+
+``strain_rate``  Cowper-Symonds rate hardening of the crush force on loading,
+    ``F_crush *= 1 + (v / D)^(1/q)`` (``d`` m/s: the crush speed at which the force doubles; ``q``).
+``damping``      Viscous (Kelvin-Voigt) crush damping ``F_extra += c v`` on both branches (``c`` N s/m).
+``unloading``    Hysteretic power-law unloading, replacing the CAE unloading: with the static force
+    at maximum crush ``F_m = M a_CAE(s_max)`` and the elastic spring-back
+    ``delta = d0 + F_m / k``, ``F_crush = F_m ((delta - u) / delta)^n`` for ``u < delta``, else 0
+    (``k`` N/m, ``d0`` m, ``n``).
+``powertrain``   A second mass ``m_p`` (per powertrain label) riding in the body is arrested by the
+    barrier once the crush closes its gap ``g``: from then on it leaves the decelerating mass
+    (``M_eff -= m_p``; its momentum goes into the barrier) and the body drives into it through
+    mounts that are elastic up to a yield force ``f_mount`` (yield displacement
+    :data:`MOUNT_YIELD_TRAVEL`) and perfectly plastic beyond: ``F_extra += min(f_mount,
+    k_m (s - g))`` on loading, unloading elastically from its peak.
+``mass``         The decelerating mass exceeds the nominal test weight: ``M_eff += extra`` (kg).
+
+Every effect lists its parameters with physical bounds and starting points (:class:`Param`);
+:func:`headline` names the one quantity the validation compares with a known answer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from crashfuse.dynamics import State, Trajectory, rollout
+from crashfuse.errors import InputError
+
+EFFECTS = ("damping", "strain_rate", "powertrain", "unloading", "mass")
+MOUNT_YIELD_TRAVEL = 0.01  # m: powertrain mounts yield after 1 cm of relative travel (k_m = f_mount / 1 cm)
+V_REF = 15.0  # m/s: reference crush speed of the strain-rate headline (about 34 mph)
+F_REF = 5e5  # N: reference peak force of the unloading headline (about 30 g on a 1700 kg car)
+
+
+@dataclasses.dataclass(frozen=True)
+class Param:
+    """One fitted parameter of an effect (SI).
+
+    Attributes
+    ----------
+    name : str
+        ``effect.param`` (``effect.param[label]`` for a parameter per powertrain label).
+    unit : str
+    lower, upper : float
+        Physical bounds (> 0; fitted in log space).
+    start : tuple of float
+        Starting points of the fit (multi-start).
+    """
+
+    name: str
+    unit: str
+    lower: float
+    upper: float
+    start: tuple
+
+
+@dataclasses.dataclass(frozen=True)
+class Plant:
+    """The CAE model of every sample's condition, tabulated for fast lookup in a rollout.
+
+    Attributes
+    ----------
+    s_step, u_step : float
+        Uniform grid steps in m of the loading (from s = 0) and unloading (from u = 0) tables.
+    a_load : ndarray, shape (n, n_s)
+        CAE loading deceleration (m/s^2) of each of ``n`` conditions on the s grid (continued
+        beyond the run's data with its last stiffness).
+    a_unload : ndarray, shape (n, n_u)
+        CAE unloading deceleration (m/s^2) on the u grid (0 beyond the spring-back).
+    mass : ndarray, shape (n,)
+        Nominal vehicle mass in kg.
+    v0 : ndarray, shape (n,)
+        Impact speed in m/s.
+    group : ndarray of int, shape (n,)
+        Index into ``labels`` (the powertrain label of each condition).
+    labels : tuple of str
+    """
+
+    s_step: float
+    u_step: float
+    a_load: np.ndarray
+    a_unload: np.ndarray
+    mass: np.ndarray
+    v0: np.ndarray
+    group: np.ndarray
+    labels: tuple
+
+    @classmethod
+    def from_curves(cls, curves, mass, group, labels, s_hi: float, n_s: int = 2048, n_u: int = 512) -> "Plant":
+        """Tabulate CAE curves (:class:`crashfuse.surrogate.CAECurve`) up to crush ``s_hi`` (m)."""
+        s = np.linspace(0.0, s_hi, n_s)
+        u_hi = max(c.u_end for c in curves) * 1.05
+        u = np.linspace(0.0, u_hi, n_u)
+        return cls(s[1], u[1], np.array([c.loading(s) for c in curves]), np.array([c.unloading(u) for c in curves]),
+                   np.asarray(mass, float), np.array([c.v0 for c in curves]), np.asarray(group, int), tuple(labels))
+
+    def subset(self, rows) -> "Plant":
+        """The plant of the conditions ``rows`` (in that order, repeats allowed)."""
+        rows = np.asarray(rows, int)
+        return dataclasses.replace(self, a_load=self.a_load[rows], a_unload=self.a_unload[rows],
+                                   mass=self.mass[rows], v0=self.v0[rows], group=self.group[rows])
+
+    def loading(self, s: np.ndarray) -> np.ndarray:
+        """CAE loading deceleration (m/s^2) of every sample at its own ``s`` (m), shape (n,)."""
+        return _lookup(self.a_load, s / self.s_step)
+
+    def unloading(self, u: np.ndarray) -> np.ndarray:
+        """CAE unloading deceleration (m/s^2) of every sample at its own ``u`` (m), shape (n,)."""
+        return _lookup(self.a_unload, u / self.u_step)
+
+
+def _lookup(table: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Row-wise linear interpolation of ``table`` at fractional indices ``pos`` (held at the ends)."""
+    pos = np.clip(pos, 0.0, table.shape[1] - 1.000001)
+    i = pos.astype(int)
+    w = pos - i
+    rows = np.arange(table.shape[0])
+    return table[rows, i] * (1.0 - w) + table[rows, i + 1] * w
+
+
+def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple[Param, ...]:
+    """The fitted parameters of ``effect`` with bounds and starting points.
+
+    Parameters
+    ----------
+    effect : str
+        A catalogue name.
+    labels : sequence of str
+        Powertrain labels of the campaign (``powertrain`` gets a mass and a gap per label).
+    mass_hint : float
+        Smallest nominal vehicle mass in kg (bounds the powertrain mass at 45 % of it).
+    """
+    check_effect(effect)
+    if effect == "damping":
+        return (Param("damping.c", "N s/m", 10.0, 1e5, (1e3, 1e4)),)
+    if effect == "strain_rate":
+        return (Param("strain_rate.d", "m/s", 1e-2, 1e8, (1e2, 1e4)),
+                Param("strain_rate.q", "-", 1.0, 12.0, (3.0, 6.0)))
+    if effect == "unloading":
+        return (Param("unloading.k", "N/m", 1e5, 1e10, (1e7, 1e8)),
+                Param("unloading.d0", "m", 1e-4, 0.1, (0.005, 0.02)),
+                Param("unloading.n", "-", 0.3, 6.0, (1.5, 1.0)))
+    if effect == "mass":
+        return (Param("mass.extra", "kg", 1.0, 2000.0, (50.0, 200.0)),)
+    per_label = [p for lab in labels for p in (
+        Param(f"powertrain.mass[{lab}]", "kg", 5.0, 0.45 * mass_hint, (150.0, 250.0)),
+        Param(f"powertrain.gap[{lab}]", "m", 0.05, 1.2, (0.35, 0.5)))]
+    return (*per_label, Param("powertrain.f_mount", "N", 1e3, 5e5, (5e4, 1e5)))
+
+
+def check_effect(name: str, field: str = "effect") -> str:
+    """``name`` if it is a catalogue effect, else InputError."""
+    if name not in EFFECTS:
+        raise InputError(f"unknown effect {name!r}; expected one of {', '.join(EFFECTS)}", field=field)
+    return name
+
+
+def decel_fn(plant: Plant, effects, theta: dict):
+    """The rollout's deceleration function for CAE + ``effects`` (see the module docstring).
+
+    Parameters
+    ----------
+    plant : Plant
+        One row per sample.
+    effects : collection of str
+    theta : dict of str to ndarray, shape (n,)
+        Every parameter of ``effects`` (names from :func:`parameters`) per sample, SI.
+
+    Returns
+    -------
+    callable
+        ``State -> ndarray, shape (n,)`` deceleration in m/s^2 for :func:`crashfuse.dynamics.rollout`.
+    """
+    effects = set(effects)
+    pt = _powertrain_arrays(plant, theta) if "powertrain" in effects else None
+    unl0 = np.maximum(plant.a_unload[:, 0], 1e-9)
+
+    def decel(st: State) -> np.ndarray:
+        load = st.loading
+        f_max = plant.mass * plant.loading(st.s_max)  # static crush force at maximum crush (N)
+        ratio = np.maximum(f_max / (plant.mass * unl0), 1e-6)
+        force = np.where(load, plant.mass * plant.loading(st.s), f_max * plant.unloading(st.u / ratio) / unl0)
+        if "strain_rate" in effects:
+            rate = np.maximum(st.v, 0.0) / theta["strain_rate.d"]
+            force = np.where(load, force * (1.0 + rate ** (1.0 / theta["strain_rate.q"])), force)
+        if "unloading" in effects:
+            delta = theta["unloading.d0"] + f_max / theta["unloading.k"]
+            frac = np.clip((delta - st.u) / delta, 0.0, 1.0)
+            force = np.where(load, force, f_max * frac ** theta["unloading.n"])
+        mass = plant.mass + (theta["mass.extra"] if "mass" in effects else 0.0)
+        if "damping" in effects:
+            force = force + theta["damping.c"] * st.v
+        if pt is not None:
+            m_p, gap, f_y = pt
+            k_m = f_y / MOUNT_YIELD_TRAVEL
+            struck = st.s_max > gap
+            peak = np.minimum(f_y, k_m * np.maximum(st.s_max - gap, 0.0))
+            mount = np.where(load, peak, np.maximum(peak - k_m * st.u, 0.0))
+            force = force + np.where(struck, mount, 0.0)
+            mass = mass - np.where(struck, m_p, 0.0)
+        return force / mass
+    return decel
+
+
+def _powertrain_arrays(plant: Plant, theta: dict):
+    """Per-sample powertrain mass, gap (by the sample's label) and mount yield force."""
+    m_p = np.choose(plant.group, [theta[f"powertrain.mass[{lab}]"] for lab in plant.labels])
+    gap = np.choose(plant.group, [theta[f"powertrain.gap[{lab}]"] for lab in plant.labels])
+    return m_p, gap, theta["powertrain.f_mount"]
+
+
+def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Trajectory:
+    """Roll out every row of ``plant`` with CAE + ``effects`` from its impact speed.
+
+    Returns
+    -------
+    crashfuse.dynamics.Trajectory
+        ``n`` samples, ``n_steps + 1`` times from contact, step ``dt`` (s).
+    """
+    return rollout(decel_fn(plant, effects, theta), plant.v0, dt, n_steps)
+
+
+def curve_plant(curves, masses, labels_of, s_hi: float) -> Plant:
+    """A :class:`Plant` from CAE curves, nominal masses (kg) and each curve's powertrain label."""
+    labels = tuple(sorted(set(labels_of)))
+    group = [labels.index(lab) for lab in labels_of]
+    return Plant.from_curves(list(curves), masses, group, labels, s_hi)
+
+
+def headline(effect: str, params: dict) -> dict:
+    """The quantity the validation compares per effect, and its plain-language reading inputs.
+
+    Where two parameters trade off against each other, the headline is the combination the data
+    fix: ``strain_rate``: the force increase at the crush speed :data:`V_REF`,
+    ``(V_REF / d)^(1/q)``; ``unloading``: the elastic spring-back from a peak force
+    :data:`F_REF`, ``d0 + F_REF / k``. Others: the effect's defining parameter (``powertrain``:
+    the mass of each label).
+    """
+    check_effect(effect)
+    if effect == "strain_rate":
+        return {"strain_rate.gain_at_15mps": (V_REF / params["strain_rate.d"]) ** (1.0 / params["strain_rate.q"])}
+    if effect == "unloading":
+        return {"unloading.springback_at_500kN": params["unloading.d0"] + F_REF / params["unloading.k"]}
+    if effect == "powertrain":
+        return {k: v for k, v in params.items() if k.startswith("powertrain.mass[")}
+    key = {"damping": "damping.c", "mass": "mass.extra"}[effect]
+    return {key: params[key]}
+

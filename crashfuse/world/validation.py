@@ -1,0 +1,121 @@
+"""Withheld-effect validation of the gap diagnosis (issue 6 point 5): the one reader of world.json.
+
+For every catalogue effect, and for the control (nothing withheld), at each strength and seed: a
+campaign from the world whose tests carry the effect and whose CAE runs do not; the diagnosis
+(which sees only the campaign files) must put the withheld effect first, add nothing else, leave
+the control empty, recover the effect's headline parameter (:func:`crashfuse.effects.headline`)
+within :data:`TOLERANCE` and shrink the gap. The answer key comes from the campaign's
+``world.json``, translated into the diagnosis's terms by :func:`true_headline`.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from crashfuse.diagnose import diagnose
+from crashfuse.effects import EFFECTS, F_REF, V_REF
+from crashfuse.io.atomic import atomic_path, write_text
+from crashfuse.io.campaign import read_campaign
+from crashfuse.world.generate import WORLD_JSON, generate
+from crashfuse.world.presets import resolve
+
+TOLERANCE = {"realistic": 0.25, "subtle": 0.50}  # relative error allowed on the headline parameter
+N_CAE = 24  # the diagnosis needs the companions only; a few more CAE runs keep the campaign realistic
+COLUMNS = ("withheld", "strength", "seed", "verdict", "first", "first_correct", "spurious", "parameter", "true",
+           "fitted", "rel_error", "within_tolerance", "iso_0_60_cae", "iso_0_60_effects", "shrinks", "seconds")
+
+
+def true_headline(world: dict, effect: str, campaign) -> dict:
+    """The headline parameter(s) of ``effect`` in the test side of ``world`` (world.json), SI.
+
+    ``powertrain``: the mass per powertrain label, averaged over the campaign's tests of that label
+    (AWD adds ``mass_awd``). ``strain_rate``: ``(V_REF / d)^(1/q)``; ``unloading``: ``d0 + F_REF / k``.
+    """
+    p = world["effects"]["test"][effect]
+    if effect == "strain_rate":
+        return {"strain_rate.gain_at_15mps": (V_REF / p["d"]) ** (1.0 / p["q"])}
+    if effect == "powertrain":
+        rows = campaign.conditions[campaign.conditions["source"] == "test"]
+        out = {}
+        for label, part in rows.groupby("powertrain"):
+            base = p["mass_type2"] if "II" in str(label) else p["mass_type1"]
+            out[f"powertrain.mass[{label}]"] = float(np.mean(base + p["mass_awd"] * (part["drive"] == "AWD")))
+        return out
+    if effect == "unloading":
+        return {"unloading.springback_at_500kN": p["d0"] + F_REF / p["k"]}
+    key = {"damping": "c", "mass": "extra"}[effect]
+    return {f"{effect}.{key}": p[key]}
+
+
+def validate_one(withheld: str, strength: str, seed: int, folder: Path, progress=None) -> list[dict]:
+    """Generate one campaign into ``folder``, diagnose it, and score the diagnosis against world.json."""
+    design = resolve("withheld", withhold=withheld, strength=strength)
+    generate(folder, design, seed=seed, n_cae=N_CAE)
+    campaign = read_campaign(folder)
+    world = json.loads((folder / WORLD_JSON).read_text())
+    t0 = time.perf_counter()
+    diag = diagnose(campaign, residual_model=False, random_state=seed, progress=progress)
+    seconds = time.perf_counter() - t0
+    js = diag.to_json()
+    iso = js["shrink"]
+    base = dict(withheld=withheld, strength=strength, seed=seed, verdict=" ".join(diag.verdict) or "none",
+                first=diag.verdict[0] if diag.verdict else "none",
+                iso_0_60_cae=iso["CAE"]["0-60"], iso_0_60_effects=iso["CAE+effects"]["0-60"], seconds=seconds)
+    expected = [] if withheld == "none" else [withheld]
+    base["first_correct"] = base["first"] == (expected[0] if expected else "none")
+    base["spurious"] = " ".join(e for e in diag.verdict if e not in expected) or ""
+    base["shrinks"] = bool(base["iso_0_60_effects"] > base["iso_0_60_cae"]) if expected else None
+    if not expected:
+        return [dict(base, parameter="", true=np.nan, fitted=np.nan, rel_error=np.nan, within_tolerance=None)]
+    fitted = next(e["headline"] for e in js["effects"] if e["effect"] == withheld)
+    rows = []
+    for name, true in true_headline(world, withheld, campaign).items():
+        err = abs(fitted[name] - true) / abs(true)
+        rows.append(dict(base, parameter=name, true=true, fitted=fitted[name], rel_error=err,
+                         within_tolerance=bool(err <= TOLERANCE[strength])))
+    return rows
+
+
+def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,), progress=print) -> pd.DataFrame:
+    """The validation matrix: (effects + control) x strengths x seeds; writes validation.csv/.md in ``out``."""
+    say = progress or (lambda line: None)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="crashfuse-validate-") as tmp:
+        for strength in strengths:
+            for withheld in (*effects, "none"):
+                for seed in seeds:
+                    if withheld == "none" and strength != strengths[0]:
+                        continue  # the control withholds nothing: its strength changes nothing
+                    folder = Path(tmp) / f"{withheld}-{strength}-{seed}"
+                    rows += validate_one(withheld, strength, seed, folder)
+                    last = rows[-1]
+                    say(f"validate {withheld} {strength} seed {seed}: verdict {last['verdict']}, "
+                        f"error {last['rel_error']:.2f}, {last['seconds']:.0f} s")
+    table = pd.DataFrame(rows, columns=list(COLUMNS))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "validation.csv") as path:
+        table.to_csv(path, index=False, float_format="%.6g", lineterminator="\n")
+    write_text(out / "validation.md", validation_markdown(table))
+    return table
+
+
+def validation_markdown(table: pd.DataFrame) -> str:
+    """Confusion table (withheld x first chosen) and the parameter errors."""
+    confusion = pd.crosstab(table.drop_duplicates(["withheld", "strength", "seed"])["withheld"],
+                            table.drop_duplicates(["withheld", "strength", "seed"])["first"])
+    lines = ["# Withheld-effect validation", "", "Rows: effect withheld from the CAE; columns: first effect chosen.",
+             "", confusion.to_markdown() if hasattr(confusion, "to_markdown") else confusion.to_string(), "",
+             "| withheld | strength | seed | verdict | parameter | true | fitted | error | ok | ISO 0-60 CAE -> +effects |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in table.itertuples():
+        lines.append(f"| {r.withheld} | {r.strength} | {r.seed} | {r.verdict} | {r.parameter} | {r.true:.4g} | "
+                     f"{r.fitted:.4g} | {r.rel_error:.2f} | {r.within_tolerance} | "
+                     f"{r.iso_0_60_cae:.3f} -> {r.iso_0_60_effects:.3f} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,153 @@
+"""The gap diagnosis: effect laws against closed forms, fits that recover known parameters, the greedy
+verdict on withheld-effect campaigns, the output files and bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from crashfuse import effect_fit as ef
+from crashfuse.cli import main
+from crashfuse.diagnose import diagnose, write_diagnosis
+from crashfuse.dynamics import State
+from crashfuse.effects import EFFECTS, decel_fn, headline, parameters
+from crashfuse.errors import InputError
+from crashfuse.world.generate import build
+from crashfuse.world.presets import resolve
+from crashfuse.world.validation import true_headline
+
+N_CAE = 12
+
+
+@pytest.fixture(scope="module")
+def damping_world():
+    return build(resolve("withheld", withhold="damping"), seed=2, n_cae=N_CAE)
+
+
+@pytest.fixture(scope="module")
+def control_world():
+    return build(resolve("withheld", withhold="none"), seed=2, n_cae=N_CAE)
+
+
+@pytest.fixture(scope="module")
+def case(control_world):
+    return ef.test_case(control_world[0])
+
+
+def _state(s, v, s_max=None, loading=True):
+    s = np.atleast_1d(np.asarray(s, float))
+    s_max = s if s_max is None else np.atleast_1d(np.asarray(s_max, float))
+    return State(s, np.atleast_1d(np.asarray(v, float)), np.maximum(s_max - s, 0.0), s_max,
+                 np.full(s.shape, loading), 1, 0.0)
+
+
+def test_laws_against_closed_forms(case):
+    plant = case.plant.subset([7])  # T08, 35 mph
+    s, v = 0.3, 12.0
+    a_cae = plant.loading(np.array([s]))[0]
+    m = plant.mass[0]
+    base = decel_fn(plant, (), {})(_state(s, v))[0]
+    assert base == pytest.approx(a_cae, rel=1e-12)
+    damped = decel_fn(plant, ("damping",), {"damping.c": np.array([4000.0])})(_state(s, v))[0]
+    assert damped == pytest.approx(a_cae + 4000.0 * v / m, rel=1e-12)
+    heavy = decel_fn(plant, ("mass",), {"mass.extra": np.array([100.0])})(_state(s, v))[0]
+    assert heavy == pytest.approx(a_cae * m / (m + 100.0), rel=1e-12)
+    rate = decel_fn(plant, ("strain_rate",), {"strain_rate.d": np.array([3000.0]),
+                                             "strain_rate.q": np.array([4.0])})(_state(s, v))[0]
+    assert rate == pytest.approx(a_cae * (1 + (v / 3000.0) ** 0.25), rel=1e-12)
+
+
+def test_powertrain_arrest_and_mount_yield(case):
+    plant = case.plant.subset([7])
+    label = plant.labels[plant.group[0]]
+    theta = {p.name: np.array([1.0]) for p in parameters("powertrain", plant.labels)}
+    theta.update({f"powertrain.mass[{label}]": np.array([200.0]), f"powertrain.gap[{label}]": np.array([0.4]),
+                  "powertrain.f_mount": np.array([5e4])})
+    fn = decel_fn(plant, ("powertrain",), theta)
+    m = plant.mass[0]
+    before, after = 0.35, 0.55
+    assert fn(_state(before, 10.0))[0] == pytest.approx(plant.loading(np.array([before]))[0], rel=1e-12)
+    expected = (m * plant.loading(np.array([after]))[0] + 5e4) / (m - 200.0)  # yielded mount, body only
+    assert fn(_state(after, 10.0))[0] == pytest.approx(expected, rel=1e-12)
+    half = 0.4 + 0.5 * 0.01  # half the yield travel: half the yield force
+    expected = (m * plant.loading(np.array([half]))[0] + 2.5e4) / (m - 200.0)
+    assert fn(_state(half, 10.0))[0] == pytest.approx(expected, rel=1e-9)
+
+
+def test_zero_effects_reproduce_the_cae_run(control_world):
+    campaign = control_world[0]
+    case = ef.test_case(campaign)
+    fits = ef.fit_folds(case, (), [[0]])
+    decel, _ = ef.predict(case, fits, [0] * len(case.test_ids), range(len(case.test_ids)))
+    for i, t in enumerate(case.test_ids):
+        cae = campaign.companion(t)
+        ref = np.interp(case.time, cae.time, cae.decel)
+        before_stop = case.time < 0.05
+        err = np.abs(decel[i] - ref)[before_stop].max()
+        assert err < 0.01 * np.abs(ref).max(), t  # Verlet at the coarser fit step, same curve
+
+
+def test_fit_recovers_parameters_of_its_own_law(case):
+    """Targets made by the laws themselves: the fit must find the parameters again."""
+    rows = np.arange(len(case.test_ids))
+    truth = {"damping.c": np.full(rows.size, 3000.0), "mass.extra": np.full(rows.size, 150.0)}
+    from crashfuse.effects import simulate
+    made = simulate(case.plant, ("damping", "mass"), truth, ef.DT, case.n_steps).decel
+    synthetic = ef.TestCase(case.test_ids, case.plant, made, np.ones_like(case.mask), case.time, case.cae_source)
+    fits = ef.fit_folds(synthetic, ("damping", "mass"), [list(rows)])
+    got = dict(zip([p.name for p in fits.params], fits.theta[0]))
+    assert got["damping.c"] == pytest.approx(3000.0, rel=0.01)
+    assert got["mass.extra"] == pytest.approx(150.0, rel=0.01)
+
+
+def test_withheld_damping_is_found_and_recovered(damping_world):
+    campaign, world = damping_world
+    diag = diagnose(campaign, effects=("mass", "damping"), residual_model=False, progress=None)
+    assert diag.verdict == ["damping"]
+    js = diag.to_json()
+    fitted = next(e for e in js["effects"] if e["effect"] == "damping")["headline"]["damping.c"]
+    true = true_headline(world, "damping", campaign)["damping.c"]
+    assert abs(fitted - true) / true < 0.25
+    assert js["shrink"]["CAE+effects"]["0-60"] > js["shrink"]["CAE"]["0-60"]
+
+
+def test_control_gives_an_empty_verdict(control_world):
+    diag = diagnose(control_world[0], effects=("damping", "mass"), residual_model=False, progress=None)
+    assert diag.verdict == []
+    assert all(not c.chosen for c in diag.candidates.values())
+
+
+def test_diagnosis_files(damping_world, tmp_path):
+    campaign, _ = damping_world
+    diag = diagnose(campaign, effects=("damping",), residual_model=False, progress=None)
+    out = write_diagnosis(diag, tmp_path / "diag", campaign)
+    js = json.loads((out / "diagnosis.json").read_text())
+    assert {"verdict", "effects", "regions", "shrink"} <= set(js)
+    assert js["effects"][0]["params"]["damping.c"]["unit"] == "N s/m"
+    assert "Verdict" in (out / "diagnosis.md").read_text()
+    assert (out / "figures" / "effects.png").stat().st_size > 0
+
+
+def test_headlines():
+    assert headline("strain_rate", {"strain_rate.d": 15.0 * 16, "strain_rate.q": 4.0}) == \
+        {"strain_rate.gain_at_15mps": pytest.approx(0.5)}
+    assert set(headline("powertrain", {"powertrain.mass[A]": 1.0, "powertrain.gap[A]": 0.3})) == \
+        {"powertrain.mass[A]"}
+    assert all(p.lower > 0 and p.upper > p.lower for e in EFFECTS for p in parameters(e))
+
+
+def test_bad_input(control_world, tmp_path):
+    campaign = control_world[0]
+    one = campaign.subset([campaign.tests[0], campaign.companion(campaign.tests[0]).run_id])
+    with pytest.raises(InputError, match="at least 2"):
+        diagnose(one, residual_model=False, progress=None)
+    no_cae = campaign.subset(campaign.tests[:2] + [campaign.companion(t).run_id for t in campaign.tests[:2]])
+    no_cae = type(campaign)(no_cae.conditions.assign(cae_run_id=None).query("source == 'test'").reset_index(drop=True),
+                            {t: no_cae.pulses[t] for t in campaign.tests[:2]})
+    with pytest.raises(InputError, match="no CAE runs"):
+        diagnose(no_cae, residual_model=False, progress=None)
+    with pytest.raises(InputError, match="unknown effect"):
+        diagnose(campaign, effects=("gravity",), residual_model=False, progress=None)
+    assert main(["diagnose", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
