@@ -28,6 +28,8 @@ _CHUNK = 2048  # prediction points per block: bounds the (n_train, chunk) work a
 _JITTERS = 10.0 ** np.arange(-12, -3)  # relative jitters tried, in order, for joint draws
 _SEED_MAX = 2**31 - 1
 _FAILED = 1e300  # objective value where K is not numerically positive definite
+_Z95 = 1.959963984540054  # two-sided 95 % normal quantile
+THETA_MAX_CANDIDATES = (1.0, 10.0, 100.0, 1000.0)  # theta upper bounds GMMGPBias chooses from by grouped CV
 
 
 class TooFewPointsError(ValueError):
@@ -135,6 +137,17 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         folds across processes instead.
     random_state : int, RandomState or None
         Seeds the restarts and the subsets.
+    theta_max_candidates : sequence of float or None
+        Upper bounds on ``theta`` to choose from when ``fit`` gets ``groups`` (at least 3):
+        the maximum-likelihood fit under each bound is scored by :meth:`grouped_cv_log_density`
+        on the training data and the best one is kept (``theta_max_``). ``None``: only
+        ``theta_bounds``. The likelihood alone lets a few groups (tests) each become their
+        own function (theta at the bound); held-out groups then fall back on the trend.
+    calibrate_variance : bool
+        With ``groups`` (at least 3): multiply ``sigma^2`` by ``(q / 1.96)^2``, if above 1,
+        where ``q`` is the 95th percentile of the standardised leave-one-group-out residuals
+        ``|e| / sd``: the 95 % band then holds 95 % of the errors made on unseen groups
+        (``variance_factor_``). The mean is unchanged.
 
     Attributes
     ----------
@@ -154,13 +167,24 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         Number of points conditioned on.
     log_marginal_likelihood_value_ : float
         Concentrated log-likelihood at the optimum, on the hyperparameter-fit subset.
+    n_fit_ : int
+        Points in the hyperparameter search (and in the grouped CV score).
+    theta_max_ : float
+        Upper bound on ``theta`` the fit used.
+    variance_factor_ : float
+        Factor applied to ``sigma^2`` by ``calibrate_variance`` (1 otherwise).
+    cv_scores_ : dict of float to float
+        Grouped leave-one-group-out log density per candidate bound (empty without groups).
     """
 
     def __init__(self, trend="constant", theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0),
                  n_restarts=2, max_fit_points=300, max_condition_points=None,
-                 normalize_y=True, blas_threads=1, random_state=None):
+                 normalize_y=True, blas_threads=1, random_state=None, theta_max_candidates=None,
+                 calibrate_variance=False):
+        self.calibrate_variance = calibrate_variance
         self.trend = trend
         self.theta_bounds = theta_bounds
+        self.theta_max_candidates = theta_max_candidates
         self.nugget_bounds = nugget_bounds
         self.n_restarts = n_restarts
         self.max_fit_points = max_fit_points
@@ -171,7 +195,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
 
     # ------------------------------------------------------------------ fitting
     @_limit_blas
-    def fit(self, X, y):
+    def fit(self, X, y, groups=None):
         """Fit hyperparameters by maximum likelihood, then condition on the data.
 
         Parameters
@@ -179,23 +203,132 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         X : array_like, shape (n, d)
         y : array_like, shape (n,)
             Bias, m/s^2 (any unit; predictions come back in it).
+        groups : array_like, shape (n,), optional
+            Which test each row came from. Makes the hyperparameter subset a deterministic,
+            evenly spaced one within each group, and enables ``theta_max_candidates``.
 
         Returns
         -------
         self
         """
         X, y = self._check_training_data(X, y)
+        if groups is not None and len(groups) != len(y):
+            raise ValueError(f"groups has {len(groups)} entries for {len(y)} rows")
         Z = self.scaler_.transform(X)
         self._y_mean, self._y_std = (y.mean(), y.std()) if self.normalize_y else (0.0, 1.0)
         u = (y - self._y_mean) / self._y_std
         rng = check_random_state(self.random_state)
-        i_fit = self._subset(len(u), self.max_fit_points, rng)
+        if groups is None:
+            i_fit = self._subset(len(u), self.max_fit_points, rng)
+        else:
+            groups = np.asarray(groups)
+            i_fit = _stratified_subset(groups, self.max_fit_points)
         self._Z_hyp, self._u_hyp = Z[i_fit], u[i_fit]
-        eta = self._optimise(rng)
+        self._g_hyp = None if groups is None else groups[i_fit]
+        self.n_fit_ = len(i_fit)
+        eta = self._choose_bound(rng)
         self.theta_, self.nugget_ = np.exp(eta[:-1]), float(np.exp(eta[-1]))
         i_cond = self._condition_subset(len(u), i_fit, rng)
         self._condition(Z[i_cond], u[i_cond])
+        self._calibrate()
         return self
+
+    def _calibrate(self):
+        """Scale ``sigma^2`` so the 95 % band holds 95 % of the grouped leave-one-out residuals (if asked)."""
+        self.variance_factor_ = 1.0
+        if not self.calibrate_variance or self._g_hyp is None or len(np.unique(self._g_hyp)) < 3:
+            return
+        res = self._grouped_residuals(np.log(np.r_[self.theta_, self.nugget_]), self._Z_hyp, self._u_hyp,
+                                      self._g_hyp)
+        if res is not None:  # 95 % of the held-out-group residuals inside the 95 % band
+            z95 = float(np.quantile(np.abs(res[0]) / np.sqrt(res[1]), 0.95))
+            self.variance_factor_ = max(1.0, (z95 / _Z95) ** 2)
+            self._sigma2 *= self.variance_factor_
+            self.sigma2_ *= self.variance_factor_
+
+    def _choose_bound(self, rng):
+        """ML hyperparameters under the theta bound with the best grouped CV log density."""
+        self.cv_scores_ = {}
+        candidates = self.theta_max_candidates
+        if not candidates or self._g_hyp is None or len(np.unique(self._g_hyp)) < 3:
+            self.theta_max_ = float(self.theta_bounds[1])
+            return self._optimise(rng, self.theta_max_)
+        best, eta = None, None
+        # Largest bound first with every restart; a smaller bound reuses that optimum when it lies
+        # inside the bound (it is then optimal there too), else starts from it clipped.
+        for hi in sorted((float(c) for c in candidates), reverse=True):
+            eta = self._optimise(rng, hi) if eta is None else self._warm_optimise(eta, hi)
+            ll = self.log_marginal_likelihood_value_
+            score = self._grouped_cv(eta, self._Z_hyp, self._u_hyp, self._g_hyp)
+            self.cv_scores_[hi] = score
+            if best is None or score > best[0]:
+                best = (score, hi, eta, ll)
+        _, self.theta_max_, eta, self.log_marginal_likelihood_value_ = best
+        return eta
+
+    @_limit_blas
+    def grouped_cv_log_density(self, groups=None):
+        """Leave-one-group-out log predictive density per point at the fitted hyperparameters.
+
+        Each group (test) is predicted from the others with the trend re-estimated (the
+        universal-kriging closed form: with ``P = K^-1 - K^-1 H (H^T K^-1 H)^-1 H^T K^-1``,
+        the held-out residuals are ``P_II^-1 (P y)_I`` with covariance ``sigma^2 P_II^-1``),
+        and every held-out point is scored by its marginal normal density. On the
+        hyperparameter-fit subset, in normalised-output units.
+
+        Parameters
+        ----------
+        groups : array_like, shape (n_hyp,), optional
+            Group of each hyperparameter-fit point; default the groups given to ``fit``.
+
+        Returns
+        -------
+        float
+            Mean log density per point (higher is better).
+        """
+        check_is_fitted(self)
+        g = self._g_hyp if groups is None else np.asarray(groups)
+        if g is None:
+            raise ValueError("grouped_cv_log_density needs groups (pass them to fit or here)")
+        eta = np.log(np.r_[self.theta_, self.nugget_])
+        return self._grouped_cv(eta, self._Z_hyp, self._u_hyp, g)
+
+    def _grouped_cv(self, eta, Z, u, groups):
+        """Mean leave-one-group-out marginal log density (see :meth:`grouped_cv_log_density`)."""
+        res = self._grouped_residuals(eta, Z, u, groups)
+        if res is None:
+            return -np.inf
+        e, var = res
+        return float(np.mean(-0.5 * (np.log(2 * np.pi * var) + e**2 / var)))
+
+    def _grouped_residuals(self, eta, Z, u, groups):
+        """Leave-one-group-out residuals and their predictive variances (normalised units).
+
+        Returns
+        -------
+        (e, var) : two ndarrays of shape (n,), or None where ``K`` or a block is singular.
+        """
+        K = _correlation(Z, Z, np.exp(eta[:-1]))
+        K[np.diag_indices_from(K)] += np.exp(eta[-1])
+        try:
+            L = cholesky(K, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        H = self._design(Z)
+        _, alpha, sigma2 = self._gls(L, H, u)  # alpha = P u
+        Kinv = lapack.dpotri(L, lower=1)[0]
+        Kinv = np.tril(Kinv) + np.tril(Kinv, -1).T
+        KiH = Kinv @ H
+        P = Kinv - KiH @ np.linalg.solve(H.T @ KiH, KiH.T)
+        e, var = np.empty(len(u)), np.empty(len(u))
+        for grp in np.unique(groups):
+            idx = np.flatnonzero(groups == grp)
+            try:
+                C = np.linalg.inv(P[np.ix_(idx, idx)])
+            except np.linalg.LinAlgError:
+                return None
+            e[idx], var[idx] = C @ alpha[idx], np.diag(C) * sigma2
+        return None if np.any(var <= 0) else (e, var)
 
     def _check_training_data(self, X, y):
         """Validate settings and data; fit the scaler and choose the trend columns.
@@ -239,16 +372,16 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         extra = rng.choice(rest, size=int(limit) - len(i_fit), replace=False)
         return np.sort(np.concatenate([i_fit, extra]))
 
-    def _bounds(self):
+    def _bounds(self, theta_max):
         """Bounds on ``[log theta_1..d, log nugget]``, shape (d + 1, 2)."""
         d = self.n_features_in_
         lo = np.r_[np.full(d, np.log(self.theta_bounds[0])), np.log(self.nugget_bounds[0])]
-        hi = np.r_[np.full(d, np.log(self.theta_bounds[1])), np.log(self.nugget_bounds[1])]
+        hi = np.r_[np.full(d, np.log(theta_max)), np.log(self.nugget_bounds[1])]
         return np.column_stack([lo, hi])
 
-    def _optimise(self, rng):
+    def _optimise(self, rng, theta_max):
         """Best ``[log theta, log nugget]`` over the fixed start and the random restarts."""
-        bounds = self._bounds()
+        bounds = self._bounds(theta_max)
         first = np.clip(np.r_[np.zeros(self.n_features_in_), np.log(1e-3)], bounds[:, 0], bounds[:, 1])
         starts = [first] + [rng.uniform(bounds[:, 0], bounds[:, 1]) for _ in range(self.n_restarts)]
         best_eta, best_f = None, np.inf
@@ -261,6 +394,19 @@ class KrigingGP(RegressorMixin, BaseEstimator):
                              "(duplicate inputs with conflicting outputs and a zero nugget?)")
         self.log_marginal_likelihood_value_ = -best_f
         return best_eta
+
+    def _warm_optimise(self, eta, theta_max):
+        """The optimum under a smaller theta bound, from the optimum ``eta`` under a larger one."""
+        bounds = self._bounds(theta_max)
+        if np.all(eta <= bounds[:, 1]):
+            self.log_marginal_likelihood_value_ = -self._objective(eta)[0]
+            return eta
+        first = np.clip(np.r_[np.zeros(self.n_features_in_), np.log(1e-3)], bounds[:, 0], bounds[:, 1])
+        fits = [minimize(self._objective, x0, jac=True, method="L-BFGS-B", bounds=bounds)
+                for x0 in (np.clip(eta, bounds[:, 0], bounds[:, 1]), first)]
+        res = min(fits, key=lambda r: r.fun)
+        self.log_marginal_likelihood_value_ = -res.fun
+        return res.x
 
     def _objective(self, eta):
         """Negative concentrated log-likelihood and its gradient, for the optimiser."""
@@ -472,6 +618,29 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         return (mean[:, None] + Lc @ z).T
 
 
+def _stratified_subset(groups, limit):
+    """Deterministic subset: about ``limit`` rows, evenly spaced within each group, sorted.
+
+    Parameters
+    ----------
+    groups : ndarray, shape (n,)
+    limit : int or None
+
+    Returns
+    -------
+    ndarray of int
+    """
+    n = len(groups)
+    if limit is None or n <= limit:
+        return np.arange(n)
+    keep = []
+    for grp in np.unique(groups):
+        idx = np.flatnonzero(groups == grp)
+        m = max(1, int(round(limit * len(idx) / n)))
+        keep.append(idx[np.unique(np.linspace(0, len(idx) - 1, m).round().astype(int))])
+    return np.sort(np.concatenate(keep))
+
+
 def _jittered_cholesky(cov):
     """Lower Cholesky factor of ``cov + j mean(diag) I`` with the smallest working jitter.
 
@@ -507,8 +676,11 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
     assignment : {'select', 'blend'}
         ``'select'``: the GP of the most responsible cluster (paper section 3.2).
         ``'blend'``: responsibility-weighted mean of the cluster GPs (paper introduction).
-    trend, theta_bounds, nugget_bounds, n_restarts
-        Passed to every cluster's :class:`KrigingGP`.
+    trend, theta_bounds, nugget_bounds, n_restarts, theta_max_candidates, calibrate_variance
+        Passed to every cluster's :class:`KrigingGP`. The last two act only when ``fit`` gets
+        ``groups``; their defaults here (choose the theta bound among ``THETA_MAX_CANDIDATES``
+        and calibrate the band by grouped leave-one-test-out) are the bias model's, see
+        ``docs/bias-model.md``.
     max_fit_points, max_condition_points, normalize_y, blas_threads
         Passed to every cluster's :class:`KrigingGP` (``blas_threads`` also limits the
         mixture and the prediction methods here). ``max_*`` apply per cluster.
@@ -541,7 +713,10 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
     def __init__(self, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
                  theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0), n_restarts=2,
                  max_fit_points=300, max_condition_points=None, normalize_y=True, n_init=5,
-                 reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None):
+                 reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None,
+                 theta_max_candidates=THETA_MAX_CANDIDATES, calibrate_variance=True):
+        self.theta_max_candidates = theta_max_candidates
+        self.calibrate_variance = calibrate_variance
         self.n_clusters = n_clusters
         self.cluster_inputs = cluster_inputs
         self.assignment = assignment
@@ -565,7 +740,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
                          max_fit_points=self.max_fit_points,
                          max_condition_points=self.max_condition_points,
                          normalize_y=self.normalize_y, blas_threads=self.blas_threads,
-                         random_state=seed)
+                         random_state=seed, theta_max_candidates=self.theta_max_candidates,
+                         calibrate_variance=self.calibrate_variance)
 
     def _min_points(self, d):
         """Smallest cluster that keeps its own GP."""
@@ -575,7 +751,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         return 3 * (p + d + 2)
 
     @_limit_blas
-    def fit(self, X, y):
+    def fit(self, X, y, groups=None):
         """Fit scaler and mixture on ``X``, then one KrigingGP per (merged) cluster.
 
         Parameters
@@ -583,6 +759,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         X : array_like, shape (n, d)
         y : array_like, shape (n,)
             Bias, m/s^2.
+        groups : array_like, shape (n,), optional
+            Test of each row, passed to the cluster GPs (:meth:`KrigingGP.fit`).
 
         Returns
         -------
@@ -605,9 +783,28 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         self.labels_ = self.component_to_gp_[self.gmm_.predict(C)]
         n_gps = self.component_to_gp_.max() + 1
         self.n_points_per_cluster_ = np.bincount(self.labels_, minlength=n_gps)
-        self.gps_ = [self._gp(rng.randint(_SEED_MAX)).fit(X[self.labels_ == g], y[self.labels_ == g])
-                     for g in range(n_gps)]
+        groups = None if groups is None else np.asarray(groups)
+        self.gps_ = [self._gp(rng.randint(_SEED_MAX)).fit(
+            X[self.labels_ == g], y[self.labels_ == g], None if groups is None else groups[self.labels_ == g])
+            for g in range(n_gps)]
         return self
+
+    def grouped_cv_log_density(self):
+        """Leave-one-test-out log density per point in y units, averaged over the cluster GPs by points.
+
+        Each cluster GP's :meth:`KrigingGP.grouped_cv_log_density` on its own points (the
+        mixture is not refitted without the group). A cluster whose points come from one test
+        cannot predict that test from the others and scores ``-inf``. Needs ``groups`` in ``fit``.
+
+        Returns
+        -------
+        float
+        """
+        check_is_fitted(self)
+        n = np.array([gp.n_fit_ for gp in self.gps_], dtype=float)
+        # each GP normalises its own outputs: back to y units (Jacobian -log std) to compare clusters and K
+        scores = np.array([gp.grouped_cv_log_density() - np.log(gp._y_std) for gp in self.gps_])
+        return float(np.sum(n * scores) / n.sum())
 
     def _cluster_view(self, X, fit=False):
         """Standardised clustering columns of ``X``, shape (n, d_cluster)."""

@@ -96,7 +96,8 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         Receives one line per finished fold.
     **fit_kwargs
         Passed to :func:`crashfuse.model.fit_model` (``assignment``, ``extra_inputs``, ``n_grid``,
-        ``use_companion``).
+        ``use_companion``, ``target``, ``weights``, ``velocity``, and :class:`crashfuse.bias.GMMGPBias` settings
+        such as ``theta_max_candidates`` or ``calibrate_variance``).
 
     Returns
     -------

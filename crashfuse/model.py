@@ -24,13 +24,20 @@ from crashfuse.dynamics import Trajectory
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
-from crashfuse.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs
+from crashfuse.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity
 from crashfuse.surrogate import CAECurve, CAESurrogate
 
 FORMAT = 1
+# What the bias GPs learn by default: the paper's absolute bias; in the state mode the bias relative
+# to the CAE deceleration (a rate effect scales the force), chosen by grouped leave-one-test-out
+# density on the training tests (docs/method-rollout.md).
+DEFAULT_TARGET = {"paper": "absolute", "state": "relative"}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
 _MATCH_RTOL = 1e-6  # a condition "is" a test's when v0 and both masses agree to this
 _REACH_TOL = 0.02  # crush or rebound up to 2 % beyond the bias data is not flagged (thinning, rounding)
+STATE_BINS = 40  # branch-coordinate bins of the joint (x, v) coverage table
+STATE_V_TOL = 0.02  # velocity slack of that table, as a fraction of the largest |v| in the data
+STATE_FRACTION = 0.05  # flag when more than this fraction of the mean path lies outside it
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +107,11 @@ class FittedModel:
     def inputs(self) -> str:
         """Bias input mode: ``paper`` or ``state``."""
         return self.settings["inputs"]
+
+    @property
+    def relative(self) -> bool:
+        """True if the bias models learn the bias relative to the CAE deceleration."""
+        return self.settings.get("target", "absolute") == "relative"
 
     def condition(self, v0, front_weight, rear_weight, powertrain=None, drive=None) -> Condition:
         """A validated :class:`Condition` (SI).
@@ -187,7 +199,10 @@ class FittedModel:
         dict of str to bool
             ``v0``, ``front_weight``, ``rear_weight``: outside the training tests' range;
             ``crush``: maximum crush beyond the loading bias data; ``rebound``: unloading travel
-            beyond the unloading bias data; ``any``.
+            beyond the unloading bias data; ``state`` (``state`` inputs only): more than
+            ``STATE_FRACTION`` of the mean path's (x, v) points on either branch lie where no
+            training test was (:func:`state_outside`) - per-column ranges miss a low speed at a
+            large crush; ``any``.
         """
         lo, hi = self.ranges["condition"]
         x = cond.array()
@@ -197,6 +212,9 @@ class FittedModel:
         u = (mean_traj.s_max[0] - mean_traj.s[0])[contact]
         flags["crush"] = bool(mean_traj.s_max[0] > (1 + _REACH_TOL) * self.x_max("loading"))
         flags["rebound"] = bool(u.size and u.max() > (1 + _REACH_TOL) * self.x_max("unloading"))
+        if "state" in self.ranges:
+            flags["state"] = any(state_outside(self.ranges["state"][b], *_path_xv(mean_traj, b)) > STATE_FRACTION
+                                 for b in BRANCHES if self.ranges["state"].get(b) is not None)
         flags["any"] = any(flags.values())
         return flags
 
@@ -250,7 +268,8 @@ def _load(kind: str, cls, path):
 
 def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, assignment: str = "select",
               extra_inputs: bool = False, n_grid: int | None = 200, use_companion: bool = False,
-              random_state: int = 0, surrogate: CAESurrogate | None = None, **bias_params) -> FittedModel:
+              random_state: int = 0, surrogate: CAESurrogate | None = None, target: str | None = None,
+              weights: bool = True, velocity: str = "sqrt", **bias_params) -> FittedModel:
     """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
 
     Parameters
@@ -278,6 +297,15 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
         Seeds the surrogate (as is, like :func:`crashfuse.evaluate.evaluate`) and both bias models.
     surrogate : CAESurrogate, optional
         Already fitted on this campaign's CAE runs (shared across folds; it sees no test data).
+    target : {"absolute", "relative"} or None
+        What the GPs learn: the bias in m/s^2, or the bias relative to the CAE deceleration
+        (:func:`crashfuse.projection.bias_scale`); the rollout adds ``scale(a_cae) * bias``.
+        None: ``DEFAULT_TARGET[inputs]`` (``paper`` as published, absolute; ``state`` relative).
+    weights : bool
+        Axle masses among the bias inputs.
+    velocity : {"linear", "sqrt"}
+        The ``state`` mode's velocity coordinate (:func:`crashfuse.projection.bias_data`);
+        ``sqrt`` (default): sign(v) sqrt(|v|), a concave rate coordinate (docs/method-rollout.md).
     **bias_params
         Further :class:`GMMGPBias` settings (``trend``, ``n_restarts``, ``max_fit_points`` ...).
 
@@ -292,6 +320,7 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
         with fewer bias points than the model has parameters.
     """
     _check_settings(k, inputs, assignment, n_grid, random_state)
+    target = DEFAULT_TARGET[inputs] if target is None else target
     if not campaign.cae:
         raise InputError("the campaign has no CAE runs: the method corrects a CAE model", campaign.root, "source")
     held = _holdout(campaign, holdout)
@@ -300,13 +329,15 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
         raise InputError("no training test left after the holdout", campaign.root, "--holdout")
     if surrogate is None:  # seeded as evaluate and `crashfuse prepare` do: fit --holdout T is T's fold
         surrogate = CAESurrogate(random_state=random_state).fit(campaign)
-    data = bias_data(campaign, train, inputs, extra_inputs, n_grid, surrogate=surrogate, use_companion=True)
+    data = bias_data(campaign, train, inputs, extra_inputs, n_grid, surrogate=surrogate, use_companion=True,
+                     target=target, weights=weights, velocity=velocity)
     seeds = np.random.RandomState(random_state).randint(_SEED_MAX, size=len(BRANCHES))
     bias = {b: _fit_branch(data, b, k, assignment, int(seed), bias_params, campaign.root)
             for b, seed in zip(BRANCHES, seeds)}
     settings = dict(k=int(k), inputs=inputs, assignment=assignment, extra_inputs=bool(extra_inputs),
                     n_grid=n_grid, use_companion=bool(use_companion), random_state=random_state,
-                    holdout=sorted(held), bias_params=dict(bias_params))
+                    holdout=sorted(held), target=target, weights=bool(weights), velocity=velocity,
+                    bias_params=dict(bias_params))
     return FittedModel(
         surrogate=surrogate, bias_=bias, settings=settings,
         columns={b: data.branch(b).columns for b in BRANCHES}, training_tests=train,
@@ -344,7 +375,7 @@ def _fit_branch(data: BiasData, branch: str, k: int, assignment: str, seed: int,
         return None
     est = GMMGPBias(n_clusters=k, assignment=assignment, random_state=seed, **params)
     try:
-        return est.fit(d.X, d.y)
+        return est.fit(d.X, d.y, d.groups)
     except TooFewPointsError as err:  # too few points for K and the GP parameters
         raise InputError(f"{branch} branch, {d.y.size} bias points from {len(set(d.groups))} tests: {err}",
                          root, "--k") from None
@@ -355,8 +386,65 @@ def _ranges(campaign: Campaign, train: list, data: BiasData) -> dict:
     cols = ["v0_mps", "front_weight_kg", "rear_weight_kg"]
     tr, cae = conds.loc[train, cols].to_numpy(float), conds.loc[campaign.cae, cols].to_numpy(float)
     x_max = {b: float(data.branch(b).X[:, 0].max()) if data.branch(b).y.size else 0.0 for b in BRANCHES}
-    return {"condition": (tr.min(axis=0), tr.max(axis=0)), "cae_condition": (cae.min(axis=0), cae.max(axis=0)),
-            "x_max": x_max}
+    out = {"condition": (tr.min(axis=0), tr.max(axis=0)), "cae_condition": (cae.min(axis=0), cae.max(axis=0)),
+           "x_max": x_max}
+    if data.inputs == "state":
+        out["state"] = {b: _state_table(data.branch(b)) if data.branch(b).y.size else None for b in BRANCHES}
+    return out
+
+
+def _state_table(d) -> tuple:
+    """:func:`state_table` of one branch's bias data (velocity column back in m/s)."""
+    return state_table(d.X[:, 0], column_velocity(d.columns[1], d.X[:, 1]))
+
+
+def state_table(x, v, n_bins: int = STATE_BINS):
+    """Joint coverage of the bias data: the velocity range seen in each branch-coordinate bin.
+
+    Parameters
+    ----------
+    x, v : ndarray, shape (n,)
+        Branch coordinate (m) and velocity (m/s) of the training rows.
+    n_bins : int
+
+    Returns
+    -------
+    edges : ndarray, shape (n_bins + 1,)
+        Bin edges in m, from 0 to the largest x.
+    v_lo, v_hi : ndarray, shape (n_bins,)
+        Velocity range per bin widened by ``STATE_V_TOL`` of the largest |v| (empty bins:
+        ``+inf, -inf``, so everything there is outside).
+    """
+    edges = np.linspace(0.0, float(np.max(x)), n_bins + 1)
+    i = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n_bins - 1)
+    v_lo, v_hi = np.full(n_bins, np.inf), np.full(n_bins, -np.inf)
+    np.minimum.at(v_lo, i, v)
+    np.maximum.at(v_hi, i, v)
+    tol = STATE_V_TOL * float(np.max(np.abs(v)))
+    return edges, v_lo - tol, v_hi + tol
+
+
+def state_outside(table, x, v) -> float:
+    """Fraction of (x, v) points outside the joint coverage ``table`` (:func:`state_table`).
+
+    Points beyond the table's last edge count as outside (the crush flag covers them too).
+    """
+    if np.size(x) == 0:
+        return 0.0
+    edges, v_lo, v_hi = table
+    i = np.searchsorted(edges, x, side="right") - 1
+    inside = (i >= 0) & (i < len(v_lo)) | np.isclose(x, edges[-1])
+    i = np.clip(i, 0, len(v_lo) - 1)
+    inside &= (v >= v_lo[i]) & (v <= v_hi[i])
+    return float(1.0 - inside.mean())
+
+
+def _path_xv(traj, branch: str):
+    """Branch coordinate and velocity of a one-sample rollout while in contact on ``branch``."""
+    code = Trajectory.LOADING if branch == "loading" else Trajectory.UNLOADING
+    on = traj.branch[0] == code
+    x = traj.s[0, on] if branch == "loading" else traj.s_max[0] - traj.s[0, on]
+    return x, traj.v[0, on]
 
 
 def _companions(campaign: Campaign) -> list:
@@ -368,3 +456,55 @@ def _companions(campaign: Campaign) -> list:
             out.append((Condition(p.v0, p.front_weight, p.rear_weight, p.meta.get("powertrain"),
                                   p.meta.get("drive")), pulse))
     return out
+
+
+def choose_k(campaign: Campaign, ks=(1, 2, 3), inputs: str = "state", holdout=None, random_state: int = 0,
+             surrogate: CAESurrogate | None = None, **fit_kwargs) -> tuple[int, dict]:
+    """The default-K rule, from training data only: inner leave-one-test-out log density.
+
+    For each K and each training test ``t`` (all but ``holdout``), the whole bias model (mixture
+    and GPs, hyperparameters included) is refitted on the other training tests and scores the
+    bias points of ``t``: the mean marginal normal log density per point (y units, predictive
+    std of the selected or blended GP), both branches pooled. A held-out test is never used.
+
+    Parameters
+    ----------
+    campaign : Campaign
+    ks : sequence of int
+    inputs : {"paper", "state"}
+    holdout : str or sequence of str, optional
+    random_state : int
+    surrogate : CAESurrogate, optional
+        Fitted once here if not given.
+    **fit_kwargs
+        Passed to :func:`fit_model` (e.g. cheaper ``n_restarts`` for the many refits).
+
+    Returns
+    -------
+    k : int
+        The best K (the smallest among ties).
+    scores : dict of int to float
+        Mean log density per bias point for each K.
+    """
+    surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
+    train = [t for t in campaign.tests if t not in _holdout(campaign, holdout)]
+    data = bias_data(campaign, train, inputs, fit_kwargs.get("extra_inputs", False), fit_kwargs.get("n_grid", 200),
+                     surrogate=surrogate, use_companion=True,
+                     target=fit_kwargs.get("target") or DEFAULT_TARGET[inputs],
+                     weights=fit_kwargs.get("weights", True), velocity=fit_kwargs.get("velocity", "sqrt"))
+    scores = {}
+    for k in ks:
+        logs = []
+        for t in train:
+            model = fit_model(campaign, k, inputs, holdout=[t, *(set(campaign.tests) - set(train))],
+                              random_state=random_state, surrogate=surrogate, **fit_kwargs)
+            for b in BRANCHES:
+                d, est = data.branch(b), model.bias_.get(b)
+                rows = d.groups == t
+                if est is None or not rows.any():
+                    continue
+                mu, sd = est.predict(d.X[rows], return_std=True)
+                sd = np.maximum(sd, 1e-12 * max(1.0, float(np.abs(d.y).max())))
+                logs.append(-0.5 * (np.log(2 * np.pi * sd**2) + (d.y[rows] - mu) ** 2 / sd**2))
+        scores[int(k)] = float(np.mean(np.concatenate(logs)))
+    return max(scores, key=lambda k: (scores[k], -k)), scores

@@ -37,11 +37,20 @@ from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
 from crashfuse.pulse import Pulse
 from crashfuse.surrogate import CATEGORIES, CAECurve, CAESurrogate
+from crashfuse.units import G0
 
 INPUTS = ("paper", "state")
 BRANCHES = ("loading", "unloading")
+TARGETS = ("absolute", "relative")
+# Relative bias: divided by the CAE deceleration, floored so the near-zero CAE decel at contact
+# and after separation does not blow it up (2 g: below the lowest plateau of a frontal pulse).
+SCALE_FLOOR = 2.0 * G0
 # Input columns (SI units in the names): branch coordinate, velocity, impact condition.
 X_COL, V_COL, V0_COL, WF_COL, WR_COL = "x_m", "v_mps", "v0_mps", "front_weight_kg", "rear_weight_kg"
+# The state mode's velocity as sign(v) sqrt(|v|) (sqrt(m/s)): a concave rate coordinate, as rate
+# hardening laws are (Cowper-Symonds: a power 1/q, q ~ 4-5, of the rate).
+SQRT_V_COL = "v_sqrt"
+VELOCITY = {"linear": V_COL, "sqrt": SQRT_V_COL}
 
 
 class Curve(Protocol):
@@ -117,7 +126,8 @@ class BranchData:
     X : ndarray, shape (n, p)
         Inputs in SI, columns named by ``columns``.
     y : ndarray, shape (n,)
-        Bias ``a_test - a_cae`` in m/s^2.
+        Bias ``a_test - a_cae`` in m/s^2 (target ``absolute``), or that divided by
+        :func:`bias_scale` of ``a_cae`` (``relative``, dimensionless).
     groups : ndarray of str, shape (n,)
         The test run_id each row came from.
     columns : tuple of str, length p
@@ -140,6 +150,7 @@ class BiasData:
     ----------
     loading, unloading : BranchData
     inputs : {"paper", "state"}
+    target : {"absolute", "relative"}
     categories : dict of str to list of str
         Levels behind the one-hot columns (the first level of each is the dropped baseline).
     missing : dict of str to str
@@ -152,6 +163,7 @@ class BiasData:
     inputs: str
     categories: dict[str, list[str]]
     missing: dict[str, str]
+    target: str = "absolute"
 
     def branch(self, name: str) -> BranchData:
         """The data of branch ``name`` ('loading' or 'unloading')."""
@@ -162,7 +174,8 @@ class BiasData:
 
 def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper", extra_inputs: bool = False,
               n_grid: int | None = 200, surrogate: CAESurrogate | None = None, use_companion: bool = True,
-              cae_curves: Mapping[str, CAECurve] | None = None) -> BiasData:
+              cae_curves: Mapping[str, CAECurve] | None = None, target: str = "absolute",
+              weights: bool = True, velocity: str = "linear") -> BiasData:
     """Bias training data from the given tests (a fold's training tests only: no leakage).
 
     Parameters
@@ -183,6 +196,15 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
         Use the companion CAE run where a test names one.
     cae_curves : mapping of str to CAECurve, optional
         Explicit CAE curves by test run_id; they take precedence over both sources above.
+    target : {"absolute", "relative"}
+        ``absolute``: y = a_test - a_cae (m/s^2); ``relative``: y = (a_test - a_cae) /
+        :func:`bias_scale` (a_cae), a fractional force error, which a rate effect makes nearly
+        independent of speed (docs/method-projection-surrogate.md).
+    weights : bool
+        Include the axle masses as inputs (within a campaign of a few tests they are confounded
+        with v0 and the powertrain).
+    velocity : {"linear", "sqrt"}
+        The state mode's velocity column: ``v_mps``, or ``v_sqrt`` = sign(v) sqrt(|v|).
 
     Returns
     -------
@@ -196,33 +218,60 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
     """
     if inputs not in INPUTS:
         raise InputError(f"expected one of {INPUTS}, got {inputs!r}", field="inputs")
+    if target not in TARGETS:
+        raise InputError(f"expected one of {TARGETS}, got {target!r}", field="target")
     if len(test_ids) == 0:
         raise InputError("expected at least one training test, got none", campaign.root, "test_ids")
     if n_grid is not None and not (isinstance(n_grid, (int, np.integer)) and n_grid >= 2):
         raise InputError(f"expected None or an integer >= 2 points per branch, got {n_grid!r}", field="n_grid")
     categories = _categories(campaign) if extra_inputs else {}
-    columns = bias_columns(inputs, categories)
+    columns = bias_columns(inputs, categories, weights, velocity)
     parts = {b: [] for b in BRANCHES}
     missing = {}
     for test_id in test_ids:
         test = _test_pulse(campaign, test_id)
         curve = _cae_curve(campaign, test, surrogate, use_companion, cae_curves or {})
-        for name, rows in _test_rows(test, curve, n_grid, missing).items():
+        for name, rows in _test_rows(test, curve, n_grid, missing, target).items():
             x, v, bias = rows
             X = bias_inputs(columns, x, v, test.v0, test.front_weight, test.rear_weight,
                             test.meta.get("powertrain"), test.meta.get("drive"))
             parts[name].append((X, bias, np.full(x.size, test_id, dtype=object)))
     data = {b: _stack(parts[b], columns) for b in BRANCHES}
-    return BiasData(data["loading"], data["unloading"], inputs, categories, missing)
+    return BiasData(data["loading"], data["unloading"], inputs, categories, missing, target)
 
 
-def bias_columns(inputs: str, categories: Mapping[str, Sequence[str]] | None = None) -> tuple[str, ...]:
-    """Input column names for ``inputs`` ('paper' | 'state') and one-hot ``categories``."""
+def column_velocity(column: str, values) -> np.ndarray:
+    """Velocity in m/s from a state velocity column's values (``v_mps`` or ``v_sqrt``)."""
+    values = np.asarray(values, dtype=float)
+    return values if column == V_COL else np.sign(values) * values**2
+
+
+def bias_scale(a_cae) -> np.ndarray:
+    """What a relative bias multiplies: the CAE deceleration floored at ``SCALE_FLOOR`` (m/s^2).
+
+    Parameters
+    ----------
+    a_cae : array_like, shape (n,)
+        CAE deceleration in m/s^2.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    return np.maximum(np.asarray(a_cae, dtype=float), SCALE_FLOOR)
+
+
+def bias_columns(inputs: str, categories: Mapping[str, Sequence[str]] | None = None,
+                 weights: bool = True, velocity: str = "linear") -> tuple[str, ...]:
+    """Input column names for ``inputs`` ('paper' | 'state'), one-hot ``categories``, the axle
+    masses and the state mode's ``velocity`` coordinate ('linear' | 'sqrt')."""
     if inputs not in INPUTS:
         raise InputError(f"expected one of {INPUTS}, got {inputs!r}", field="inputs")
-    base = (X_COL, V_COL) if inputs == "state" else (X_COL,)
+    if velocity not in VELOCITY:
+        raise InputError(f"expected one of {tuple(VELOCITY)}, got {velocity!r}", field="velocity")
+    base = (X_COL, VELOCITY[velocity]) if inputs == "state" else (X_COL,)
     one_hot = tuple(f"{c}={lv}" for c, levels in (categories or {}).items() for lv in levels[1:])
-    return (*base, V0_COL, WF_COL, WR_COL, *one_hot)
+    return (*base, V0_COL, *((WF_COL, WR_COL) if weights else ()), *one_hot)
 
 
 def bias_inputs(columns: Sequence[str], x, v, v0: float, front_weight: float, rear_weight: float,
@@ -252,10 +301,11 @@ def bias_inputs(columns: Sequence[str], x, v, v0: float, front_weight: float, re
     for j, col in enumerate(columns):
         if col == X_COL:
             out[:, j] = x
-        elif col == V_COL:
+        elif col in (V_COL, SQRT_V_COL):
             if v is None:
-                raise InputError("the state inputs need the velocity", field=V_COL)
-            out[:, j] = np.broadcast_to(np.asarray(v, dtype=float), x.shape)
+                raise InputError("the state inputs need the velocity", field=col)
+            vv = np.broadcast_to(np.asarray(v, dtype=float), x.shape)
+            out[:, j] = vv if col == V_COL else np.sign(vv) * np.sqrt(np.abs(vv))
         elif col in (V0_COL, WF_COL, WR_COL):
             out[:, j] = {V0_COL: v0, WF_COL: front_weight, WR_COL: rear_weight}[col]
         else:
@@ -300,21 +350,27 @@ def _cae_curve(campaign: Campaign, test: Pulse, surrogate, use_companion: bool, 
     return stand_in
 
 
-def _test_rows(test: Pulse, curve: CAECurve, n_grid, missing: dict) -> dict[str, tuple]:
-    """Projected and thinned (x, v, bias) per branch for one test; records branches with no data."""
+def _test_rows(test: Pulse, curve: CAECurve, n_grid, missing: dict, target: str = "absolute") -> dict[str, tuple]:
+    """Projected and thinned (x, v, y) per branch for one test; records branches with no data."""
     br = displacement_branches(test)
-    out = {"loading": project_branch(br.loading, _Samples(curve.s, curve.a_loading))}
+    cae = {"loading": _Samples(curve.s, curve.a_loading)}
     if br.unloading is None:
         missing[f"{test.run_id}/unloading"] = "the test never reaches zero velocity in its record"
     elif curve.u is None:
         missing[f"{test.run_id}/unloading"] = f"its CAE curve ({curve.run_id}) has no unloading branch"
     else:
-        out["unloading"] = project_branch(br.unloading, _cae_unloading(curve, br.unloading.x[-1]))
-    for name in list(out):
-        if out[name][0].size < 2:
+        cae["unloading"] = _cae_unloading(curve, br.unloading.x[-1])
+    out = {}
+    for name, side in cae.items():
+        rows = project_branch(getattr(br, name), side)
+        if rows[0].size < 2:
             missing[f"{test.run_id}/{name}"] = "the test and CAE branches do not overlap"
-            del out[name]
-    return {name: thin(*rows, n_grid) for name, rows in out.items()}
+            continue
+        x, v, bias = thin(*rows, n_grid)
+        if target == "relative":
+            bias = bias / bias_scale(np.interp(x, side.x, side.decel))
+        out[name] = (x, v, bias)
+    return out
 
 
 def _cae_unloading(curve: CAECurve, reach: float) -> _Samples:

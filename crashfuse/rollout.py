@@ -6,7 +6,8 @@ CAE curve of that condition (surrogate, or the companion run) plus the bias, per
     loading    a = CAE_loading(s)   + bias_loading(x = s, ...)
     unloading  a = CAE_unloading(u) + bias_unloading(x = u = s_max - s, ...)
 
-stepped by :func:`crashfuse.dynamics.rollout` (velocity Verlet, barrier constraints).
+stepped by :func:`crashfuse.dynamics.rollout` (velocity Verlet, barrier constraints). With a
+relative target (``model.relative``) the bias is ``bias_scale(CAE) * b`` instead of ``b``.
 
 Monte Carlo. The condition is fixed for a prediction, so in ``paper`` mode each branch's bias is
 a function of the branch coordinate only: it is drawn jointly (latent, no nugget) on a uniform
@@ -36,7 +37,7 @@ import pandas as pd
 from crashfuse.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
 from crashfuse.metrics import occupant_load_criterion
-from crashfuse.projection import BRANCHES
+from crashfuse.projection import BRANCHES, bias_scale
 from crashfuse.units import G0, KMH, MM, MS
 
 BAND = (2.5, 97.5)  # percent: the 95 % band
@@ -173,16 +174,20 @@ class _Tabulated:
         return np.interp(s, self.s, self.a)
 
 
-def _decel_fn(curve, biases):
-    """decel_fn for :func:`crashfuse.dynamics.rollout`: CAE curve plus the branch biases."""
+def _decel_fn(curve, biases, relative=False):
+    """decel_fn for :func:`crashfuse.dynamics.rollout`: CAE curve plus the branch biases.
+
+    With ``relative`` the biases are fractions of :func:`crashfuse.projection.bias_scale` of the
+    CAE deceleration at the same point.
+    """
     def decel(state):
         a = np.empty(state.s.shape)
-        lo = state.loading
-        if lo.any():
-            a[lo] = curve.loading(state.s[lo]) + _sub(biases["loading"], state.s, state.v, lo)
-        un = ~lo
-        if un.any():
-            a[un] = curve.unloading(state.u[un]) + _sub(biases["unloading"], state.u, state.v, un)
+        for mask, x, cae_at, name in ((state.loading, state.s, curve.loading, "loading"),
+                                      (~state.loading, state.u, curve.unloading, "unloading")):
+            if mask.any():
+                a_cae = cae_at(x[mask])
+                bias = _sub(biases[name], x, state.v, mask)
+                a[mask] = a_cae + (bias_scale(a_cae) * bias if relative else bias)
         return a
     return decel
 
@@ -232,7 +237,7 @@ def predict(model, v0, front_weight, rear_weight, powertrain=None, drive=None, n
     rng = np.random.RandomState(random_state) if not isinstance(random_state, np.random.RandomState) \
         else random_state
     curve, draws, mean_traj, cae = _prepare(model, cond, n_samples, rng, dt, n_steps)
-    mc = rollout(_decel_fn(curve, draws), np.full(n_samples, cond.v0), dt, n_steps)
+    mc = rollout(_decel_fn(curve, draws, model.relative), np.full(n_samples, cond.v0), dt, n_steps)
     return _summarise(mc, mean_traj, cae, cond, model.extrapolation(cond, mean_traj))
 
 
@@ -253,7 +258,7 @@ def _prepare(model, cond, n_samples: int, rng, dt: float, n_steps: int):
     cae = rollout(_decel_fn(curve, {b: None for b in BRANCHES}), cond.v0, dt, n_steps)
     x_hi = _grid_ends(model, raw, cae)
     means = {b: _mean_bias(model, b, cond, x_hi[b]) for b in BRANCHES}
-    mean_traj = rollout(_decel_fn(curve, means), cond.v0, dt, n_steps)
+    mean_traj = rollout(_decel_fn(curve, means, model.relative), cond.v0, dt, n_steps)
     draws = {b: _drawn_bias(model, b, cond, means[b], mean_traj, n_samples, rng) for b in BRANCHES}
     return curve, draws, mean_traj, cae
 

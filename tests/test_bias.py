@@ -355,3 +355,59 @@ def test_same_seed_same_model():
     a = GMMGPBias(n_clusters=2, random_state=11).fit(X, y)
     b = GMMGPBias(n_clusters=2, random_state=11).fit(X, y)
     np.testing.assert_array_equal(a.predict(X), b.predict(X))
+
+
+# ------------------------------------------------- grouped CV and the theta bound
+def _grouped_data(seed=0, n_groups=6, per=12):
+    """Smooth function of (x, c) where c is constant within a group (like v0 within a test)."""
+    rng = np.random.default_rng(seed)
+    c = np.repeat(rng.uniform(0, 3, n_groups), per)
+    x = np.tile(np.linspace(0, 2, per), n_groups)
+    y = np.sin(2 * x) + 0.5 * c + 0.02 * rng.standard_normal(c.size)
+    return np.column_stack([x, c]), y, np.repeat(np.arange(n_groups), per)
+
+
+def test_grouped_cv_matches_brute_force_refits():
+    """Closed form vs refitting beta (GLS) without each group at the same theta, nugget, sigma^2."""
+    X, y, groups = _grouped_data()
+    gp = KrigingGP(trend="linear", max_fit_points=None, random_state=0).fit(X, y, groups)
+    Z, u = _standardised(gp, X, y)
+    diff2 = (Z[:, None, :] - Z[None, :, :]) ** 2
+    K = np.exp(-(diff2 * gp.theta_).sum(-1)) + gp.nugget_ * np.eye(len(u))
+    H = np.column_stack([np.ones(len(u)), Z])
+    sigma2 = gp.sigma2_ / y.std() ** 2
+    total = 0.0
+    for g in np.unique(groups):
+        out, keep = groups == g, groups != g
+        Kk = K[np.ix_(keep, keep)]
+        beta = np.linalg.solve(H[keep].T @ np.linalg.solve(Kk, H[keep]), H[keep].T @ np.linalg.solve(Kk, u[keep]))
+        k_star = K[np.ix_(out, keep)]
+        mean = H[out] @ beta + k_star @ np.linalg.solve(Kk, u[keep] - H[keep] @ beta)
+        # variance with the trend-estimation term (universal kriging), noisy observation
+        U = H[out].T - H[keep].T @ np.linalg.solve(Kk, k_star.T)
+        M = H[keep].T @ np.linalg.solve(Kk, H[keep])
+        var = sigma2 * (np.diag(K[np.ix_(out, out)]) - np.einsum("ij,ji->i", k_star, np.linalg.solve(Kk, k_star.T))
+                        + np.einsum("ji,ji->i", U, np.linalg.solve(M, U)))
+        total += np.sum(-0.5 * (np.log(2 * np.pi * var) + (u[out] - mean) ** 2 / var))
+    assert gp.grouped_cv_log_density() == pytest.approx(total / len(u), rel=1e-6)
+
+
+def test_theta_bound_is_chosen_by_grouped_cv():
+    X, y, groups = _grouped_data(seed=3)
+    gp = KrigingGP(theta_max_candidates=(0.1, 1e3), random_state=0).fit(X, y, groups)
+    assert set(gp.cv_scores_) == {0.1, 1e3}
+    assert gp.theta_max_ == max(gp.cv_scores_, key=gp.cv_scores_.get)
+    assert np.all(gp.theta_ <= gp.theta_max_ * (1 + 1e-9))
+    single = KrigingGP(theta_bounds=(1e-5, gp.theta_max_), random_state=0).fit(X, y, groups)
+    np.testing.assert_allclose(single.theta_, gp.theta_, rtol=1e-3)  # same optimum, other restarts
+    assert not KrigingGP(theta_max_candidates=(0.1, 1e3)).fit(X, y).cv_scores_  # no groups: no choice
+
+
+def test_grouped_subset_is_even_within_groups_and_seed_free():
+    X, y, groups = _grouped_data(n_groups=5, per=40)
+    a = KrigingGP(max_fit_points=50, n_restarts=0, random_state=1).fit(X, y, groups)
+    b = KrigingGP(max_fit_points=50, n_restarts=0, random_state=2).fit(X, y, groups)
+    np.testing.assert_array_equal(a._Z_hyp, b._Z_hyp)
+    assert np.bincount(a._g_hyp).tolist() == [10] * 5
+    with pytest.raises(ValueError, match="groups"):
+        KrigingGP().fit(X, y, groups[:-1])

@@ -228,3 +228,31 @@ def test_thinning_cost_falls_with_the_grid(world):
     assert errors[0] > errors[1] > errors[2]
     # What remains at 400 points is the tests' measurement noise (the GP's nugget's share).
     assert errors[2] < 0.05
+
+
+def test_relative_target_divides_by_the_floored_cae_decel(cae):
+    from crashfuse.projection import SCALE_FLOOR, bias_scale
+    camp = _pair_campaign(cae)
+    absolute = bias_data(camp, ["T1"], inputs="paper", n_grid=None)
+    relative = bias_data(camp, ["T1"], inputs="paper", n_grid=None, target="relative")
+    x = absolute.loading.X[:, 0]
+    np.testing.assert_allclose(relative.loading.y * bias_scale(cae_loading(x)), absolute.loading.y, atol=1e-3)
+    assert relative.target == "relative" and bias_scale([0.0, 1e3]).tolist() == [SCALE_FLOOR, 1e3]
+    no_weights = bias_data(camp, ["T1"], inputs="state", weights=False)
+    assert no_weights.loading.columns == ("x_m", "v_mps", "v0_mps")
+    with pytest.raises(InputError, match="target"):
+        bias_data(camp, ["T1"], target="ratio")
+
+
+def test_sqrt_velocity_column_round_trips(cae):
+    from crashfuse.projection import column_velocity
+    camp = _pair_campaign(cae)
+    linear = bias_data(camp, ["T1"], inputs="state", n_grid=50)
+    root = bias_data(camp, ["T1"], inputs="state", n_grid=50, velocity="sqrt")
+    assert root.loading.columns[:2] == ("x_m", "v_sqrt")
+    v = linear.loading.X[:, 1]
+    np.testing.assert_allclose(root.loading.X[:, 1], np.sign(v) * np.sqrt(np.abs(v)))
+    np.testing.assert_allclose(column_velocity("v_sqrt", root.loading.X[:, 1]), v)
+    np.testing.assert_allclose(bias_inputs(root.loading.columns, [0.1], [-4.0], 1.0, 1.0, 1.0)[0, 1], -2.0)
+    with pytest.raises(InputError, match="velocity"):
+        bias_columns("state", velocity="log")

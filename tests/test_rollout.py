@@ -157,7 +157,7 @@ def test_unloading_grid_ignores_free_flight_after_separation(campaign, model, mo
 
 def test_state_inputs_predict(campaign, surrogate):
     m = fit_model(campaign, 2, inputs="state", holdout="T07", surrogate=surrogate, **FAST)
-    assert m.columns["loading"][:2] == ("x_m", "v_mps")
+    assert m.columns["loading"][:2] == ("x_m", "v_sqrt")
     assert "T07" not in m.groups["loading"] + m.groups["unloading"]
     pred = _at(m, campaign.pulses["T07"], n_samples=100, random_state=0)
     assert np.all(np.isfinite(pred.decel)) and np.all(pred.decel_lo <= pred.decel_hi)
@@ -237,3 +237,55 @@ def test_cli_fit_predict_round_trip(tmp_path, capsys):
     assert main(argv[:3] + ["-5"] + argv[4:]) == 2
     assert main(["predict", str(tmp_path / "nope.pkl"), *argv[2:]]) == 2
     assert not (tmp_path / "nope.csv").exists()
+
+
+def test_relative_true_bias_reproduces_the_test(campaign, surrogate):
+    # The relative target learns (a_test - a_cae) / scale(a_cae); the rollout multiplies it back.
+    others = [t for t in campaign.tests if t != "T04"]
+    m = fit_model(campaign, 1, inputs="paper", holdout=others, surrogate=surrogate, use_companion=True,
+                  n_grid=300, target="relative")
+    assert m.relative and m.settings["target"] == "relative"
+    test = campaign.pulses["T04"]
+    pred = _at(m, test, n_samples=50, random_state=1)
+    early = pred.time <= 0.06
+    assert np.abs(pred.mean_function_decel - test.decel)[early].max() < 1.5 * G
+
+
+def test_relative_bias_multiplies_the_floored_cae_decel():
+    from crashfuse.projection import SCALE_FLOOR
+    curve = type("Curve", (), {"loading": staticmethod(lambda s: 100.0 * s), "unloading": staticmethod(np.zeros_like)})
+    bias = {"loading": lambda x, v, rows: np.full(x.size, 0.5), "unloading": None}
+    state = type("State", (), dict(s=np.array([0.01, 1.0]), u=np.zeros(2), v=np.ones(2), loading=np.array([True, True])))
+    a = rollout_module._decel_fn(curve, bias, relative=True)(state)
+    np.testing.assert_allclose(a, [1.0 + 0.5 * SCALE_FLOOR, 150.0])  # floored at 0.01 m, 1.5x at 1 m
+    np.testing.assert_allclose(rollout_module._decel_fn(curve, bias)(state), [1.5, 100.5])
+
+
+def test_joint_state_coverage_flags_low_speed_at_large_crush(campaign, surrogate):
+    from crashfuse.model import state_outside, state_table
+    x = np.tile(np.linspace(0, 1, 50), 2)
+    v = np.r_[np.linspace(10, 0, 50), np.linspace(15, 0, 50)]
+    table = state_table(x, v, n_bins=10)
+    assert state_outside(table, x, v) == 0.0
+    assert state_outside(table, np.array([0.05, 0.5]), np.array([3.0, 3.0])) == 1.0  # slow at the start and middle
+    assert state_outside(table, np.array([2.0]), np.array([0.0])) == 1.0  # beyond the data
+    m = fit_model(campaign, 1, inputs="state", holdout="T01", surrogate=surrogate, **FAST)
+    p01 = _at(m, campaign.pulses["T01"], n_samples=20, random_state=0)
+    assert p01.extrapolation["state"] and p01.extrapolation["any"]
+    p_paper = _at(fit_model(campaign, 1, inputs="paper", holdout="T01", surrogate=surrogate, **FAST),
+                  campaign.pulses["T01"], n_samples=20, random_state=0)
+    assert "state" not in p_paper.extrapolation
+
+
+def test_choose_k_scores_each_k_on_training_tests_only(campaign, surrogate, monkeypatch):
+    from crashfuse import model as model_module
+    seen = []
+    real = model_module.bias_data
+    monkeypatch.setattr(model_module, "bias_data", lambda c, tests, *a, **kw: seen.append(list(tests)) or real(c, tests, *a, **kw))
+    held = ["T05", "T06", "T07", "T08", "T09", "T10", "T11"]  # 4 training tests keep it quick
+    k, scores = model_module.choose_k(campaign, ks=(1, 2), inputs="state", holdout=held, surrogate=surrogate, **FAST)
+    assert set(scores) == {1, 2} and k in scores and np.isfinite(scores[1])
+    assert scores[k] == max(scores.values())
+    # every refit leaves one training test out, and no fit ever sees the held-out tests
+    fits = [tests for tests in seen if len(tests) == 3]
+    assert len(fits) == 2 * 4 and all(not set(held) & set(tests) for tests in seen)
