@@ -134,10 +134,6 @@ class FoldFits:
     theta: np.ndarray
     cost: np.ndarray
 
-    def theta_dict(self, rows: np.ndarray) -> dict:
-        """Per-sample parameter arrays for samples fitted by problems ``rows``."""
-        return {p.name: self.theta[rows, j] for j, p in enumerate(self.params)}
-
 
 def effect_params(case: TestCase, effects) -> tuple[Param, ...]:
     """All fitted parameters of ``effects`` for this case (powertrain: per label)."""
@@ -165,7 +161,7 @@ def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = No
     """
     params = effect_params(case, effects)
     if not params:
-        return FoldFits(tuple(effects), (), np.empty((len(train_sets), 0)), _costs(case, (), train_sets, None))
+        return FoldFits(tuple(effects), (), np.empty((len(train_sets), 0)), _costs(case, train_sets))
     starts = _starts(params, len(train_sets), start)
     n_start = starts.shape[0]
     sets = [list(t) for t in train_sets] * n_start
@@ -268,11 +264,11 @@ def _residuals_and_jacobian(case, effects, params, sets, z, which=None):
     return out_res, out_jac
 
 
-def _costs(case, effects, train_sets, theta):
-    """Mean squared residual of each training set with no fitted parameters."""
+def _costs(case, train_sets):
+    """Mean squared residual of each training set for the CAE alone (no effect, nothing fitted)."""
     out = []
     for rows in train_sets:
-        diff = _run(case, effects, (), np.asarray(rows, int), np.empty((len(rows), 0)))
+        diff = _run(case, (), (), np.asarray(rows, int), np.empty((len(rows), 0)))
         out.append(float((diff ** 2).sum() / case.mask[list(rows)].sum()))
     return np.array(out)
 
@@ -300,9 +296,4 @@ def loto_sets(n_tests: int) -> list[list[int]]:
     """The leave-one-test-out training sets, then the all-tests set."""
     every = list(range(n_tests))
     return [[j for j in every if j != i] for i in every] + [every]
-
-
-def effect_sets(chosen, candidates):
-    """Candidate effect sets of a greedy round: ``chosen`` plus one more each."""
-    return [(*chosen, c) for c in candidates if c not in chosen]
 

@@ -151,3 +151,15 @@ def test_bad_input(control_world, tmp_path):
     with pytest.raises(InputError, match="unknown effect"):
         diagnose(campaign, effects=("gravity",), residual_model=False, progress=None)
     assert main(["diagnose", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_small_validation_matrix(tmp_path):
+    """The harness end to end on one effect and the control (the full matrix is a workflow target)."""
+    from crashfuse.world.validation import validate
+    table = validate(tmp_path, effects=("damping",), strengths=("realistic",), seeds=(0,),
+                     candidates=("damping", "mass"), progress=None)
+    assert list(table["withheld"]) == ["damping", "none"]
+    assert table["first_correct"].all() and (table["spurious"].fillna("") == "").all()
+    damping = table.iloc[0]
+    assert damping["within_tolerance"] and damping["shrinks"] and damping["heldout_mse_ratio"] < 0.5
+    assert (tmp_path / "validation.md").read_text().count("| damping |") >= 1
