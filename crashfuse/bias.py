@@ -789,23 +789,6 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
             for g in range(n_gps)]
         return self
 
-    def grouped_cv_log_density(self):
-        """Leave-one-test-out log density per point in y units, averaged over the cluster GPs by points.
-
-        Each cluster GP's :meth:`KrigingGP.grouped_cv_log_density` on its own points (the
-        mixture is not refitted without the group). A cluster whose points come from one test
-        cannot predict that test from the others and scores ``-inf``. Needs ``groups`` in ``fit``.
-
-        Returns
-        -------
-        float
-        """
-        check_is_fitted(self)
-        n = np.array([gp.n_fit_ for gp in self.gps_], dtype=float)
-        # each GP normalises its own outputs: back to y units (Jacobian -log std) to compare clusters and K
-        scores = np.array([gp.grouped_cv_log_density() - np.log(gp._y_std) for gp in self.gps_])
-        return float(np.sum(n * scores) / n.sum())
-
     def _cluster_view(self, X, fit=False):
         """Standardised clustering columns of ``X``, shape (n, d_cluster)."""
         cols = list(range(X.shape[1])) if self.cluster_inputs is None else list(self.cluster_inputs)

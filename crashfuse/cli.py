@@ -168,7 +168,6 @@ def _evaluate(args) -> int:
 
 def _diagnose(args) -> int:
     from crashfuse.diagnose import diagnose, write_diagnosis
-    from crashfuse.gap import locate_gap
     from crashfuse.io.campaign import read_campaign
     from crashfuse.model import load_surrogate
 
@@ -176,13 +175,10 @@ def _diagnose(args) -> int:
     surrogate = load_surrogate(args.surrogate) if args.surrogate else None
     if surrogate is not None:
         surrogate.check_campaign(campaign, args.surrogate)
-    diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, k=args.k, n_samples=args.samples,
-                    random_state=args.seed, surrogate=surrogate, in_sample=args.in_sample,
+    diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, min_wins=args.min_wins, k=args.k,
+                    n_samples=args.samples, random_state=args.seed, surrogate=surrogate, in_sample=args.in_sample,
                     residual_model=not args.no_residual)
-    gap = locate_gap(campaign, surrogate=surrogate, random_state=args.seed) if len(campaign.tests) >= 2 else None
-    if gap is not None:
-        diag.regions = gap.to_json()
-    out = write_diagnosis(diag, args.out, campaign, gap)
+    out = write_diagnosis(diag, args.out, campaign)
     print(f"verdict: {', '.join(diag.verdict) or 'none'} -> {out / 'diagnosis.md'}")
     return 0
 
@@ -360,7 +356,10 @@ def _build_parser() -> argparse.ArgumentParser:
                    help=f"candidate effects (default all: {' '.join(EFFECTS)})")
     s.add_argument("--threshold", type=float, default=0.10,
                    help="relative drop of the held-out squared error an effect must bring (default 0.10)")
-    s.add_argument("--k", type=_positive, default=1, help="mixture size of the GMM-GPR residual model (default 1)")
+    s.add_argument("--min-wins", type=float, default=2 / 3,
+                   help="share of folds whose held-out error must drop (default 2/3)")
+    s.add_argument("--k", type=_positive, default=1,
+                   help="mixture size of the bias model of the gap map and the GMM-GPR rows (default 1)")
     s.add_argument("--samples", type=_positive, default=200, help="Monte Carlo samples per GMM-GPR fold (default 200)")
     s.add_argument("--surrogate", default=None, help="CAE surrogate file from 'crashfuse prepare' (default: fit it)")
     s.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")

@@ -7,7 +7,8 @@
    CAE + effects rollout against the held-out test over its record. Greedy forward selection: each
    round fits every remaining effect together with those already chosen (all folds at once) and
    adds the best one only if it lowers the held-out error by at least ``threshold`` (relative)
-   AND on at least ``min_wins`` of the folds; otherwise the search stops - possibly with nothing
+   AND on at least ``min_wins`` of the folds, and none of its own parameters sits at its upper
+   bound (the law would need more than is physical); otherwise the search stops - possibly with nothing
    chosen, when no effect explains the gap beyond what measurement noise and the CAE model's own
    scatter do.
 3. How far it shrinks: leave-one-test-out ISO/TS 18571 scores for CAE alone, CAE + effects,
@@ -30,6 +31,7 @@ import pandas as pd
 from crashfuse.effect_fit import DT, FoldFits, TestCase, effect_params, fit_folds, loto_sets, predict, test_case
 from crashfuse.effects import EFFECTS, V_REF, check_effect, headline
 from crashfuse.errors import InputError
+from crashfuse.gap import locate_gap
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import Campaign
 from crashfuse.iso18571 import iso_score
@@ -62,6 +64,12 @@ class Candidate:
     def wins(self) -> int:
         return int((self.heldout_mse < self.reference_mse).sum())
 
+    @property
+    def at_upper_bound(self) -> list:
+        """Own parameters at their upper bound in the all-tests fit: the law needed more than is physical."""
+        return [p.name for p, v in zip(self.fits.params, self.fits.theta[-1])
+                if p.name.startswith(self.effect + ".") and np.isclose(v, p.upper, rtol=1e-3)]
+
 
 @dataclasses.dataclass
 class Diagnosis:
@@ -75,6 +83,7 @@ class Diagnosis:
     predictions: dict  # model -> (n_tests, n_t) decel m/s^2 on case.time (CAE, CAE+effects)
     settings: dict
     holdout: bool
+    gap: object = None  # crashfuse.gap.GapMap (None for a single test)
 
     def to_json(self) -> dict:
         mean = self.shrink.groupby(["model", "window_ms"], sort=False)["overall"].mean()
@@ -94,7 +103,7 @@ class Diagnosis:
 def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, min_wins: float = MIN_WINS,
              k: int = 1, inputs: str = "paper", n_samples: int = 200, random_state: int = 0,
              surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,
-             progress=print) -> Diagnosis:
+             regions: bool = True, progress=print) -> Diagnosis:
     """Diagnose the gap between a campaign's CAE runs and its tests.
 
     Parameters
@@ -118,6 +127,8 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
         Allow a single-test campaign: evidence is then in-sample (no hold-out), flagged.
     residual_model : bool
         Compute the two GMM-GPR rows of the shrink table (the slow part).
+    regions : bool
+        Locate the gap (:func:`crashfuse.gap.locate_gap`, with the same ``k``); needs two tests.
     progress : callable or None
 
     Raises
@@ -128,9 +139,12 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     say = progress or (lambda line: None)
     effects = [check_effect(e, "--effects") for e in dict.fromkeys(effects)]
     _check(campaign, threshold, min_wins, in_sample)
+    holdout = len(campaign.tests) >= 2
+    regions = regions and holdout
+    if surrogate is None and (regions or (holdout and residual_model)):  # fit it once for every part
+        surrogate = CAESurrogate(random_state=random_state).fit(campaign)
     case = test_case(campaign, surrogate, random_state)
     n = len(case.test_ids)
-    holdout = n >= 2
     sets = loto_sets(n) if holdout else [[0], [0]]
     cae = fit_folds(case, (), sets)
     chosen, candidates, current = [], {}, cae
@@ -146,7 +160,10 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
             c = candidates[e]
             say(f"  round {rnd} +{e}: held-out rms {_rms_g(c.heldout_mse):.3f} g (x{c.ratio:.3f} MSE), "
                 f"better on {c.wins}/{n}")
-        best = min(remaining, key=lambda e: candidates[e].ratio)
+        eligible = [e for e in remaining if not candidates[e].at_upper_bound]
+        if not eligible:
+            break
+        best = min(eligible, key=lambda e: candidates[e].ratio)
         c = candidates[best]
         if c.ratio > 1.0 - threshold or c.wins < math.ceil(min_wins * n):
             break
@@ -160,7 +177,8 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
                      holdout and residual_model, say)
     settings = dict(effects=list(effects), threshold=threshold, min_wins=min_wins, k=k, inputs=inputs,
                     n_samples=n_samples, random_state=random_state, rollout_dt_s=DT)
-    return Diagnosis(chosen, candidates, {}, shrink, case, preds, settings, holdout)
+    gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
+    return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap)
 
 
 def _check(campaign, threshold, min_wins, in_sample):
@@ -202,7 +220,6 @@ def _shrink(campaign, case, preds, fits, chosen, k, inputs, n_samples, random_st
             rows += _iso_rows(campaign.pulses[t], case.time, decel[i], t, model)
     if residual:
         from crashfuse.evaluate import evaluate
-        surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
         label = f"K{k}"
         say("diagnose: GMM-GPR alone (leave-one-test-out)")
         plain = evaluate(campaign, ks=(k,), inputs=(inputs,), n_samples=n_samples, random_state=random_state,
@@ -266,6 +283,7 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
         "effect": c.effect, "chosen": c.chosen, "params": params,
         "headline": headline(c.effect, own),
         "evidence": {"round": c.round, "heldout_mse_ratio": c.ratio, "folds_better": c.wins,
+                     "at_upper_bound": c.at_upper_bound,
                      "n_folds": int(c.heldout_mse.size), "heldout_rms_g": _rms_g(c.heldout_mse),
                      "reference_rms_g": _rms_g(c.reference_mse), "fitted_with": list(c.fits.effects)},
         "reading": reading(c.effect, own, case),
@@ -300,7 +318,7 @@ def reading(effect: str, p: dict, case: TestCase) -> str:
             f"its mounts yield at {p['powertrain.f_mount'] / 1e3:.0f} kN")
 
 
-def write_diagnosis(diag: Diagnosis, out, campaign: Campaign, gap=None) -> Path:
+def write_diagnosis(diag: Diagnosis, out, campaign: Campaign) -> Path:
     """Write ``diagnosis.json``, ``diagnosis.md``, ``shrink.csv`` and the figures into ``out``.
 
     Every file is written atomically; ``diagnosis.json`` last, so its presence marks a complete
@@ -312,8 +330,9 @@ def write_diagnosis(diag: Diagnosis, out, campaign: Campaign, gap=None) -> Path:
     (out / "figures").mkdir(parents=True, exist_ok=True)
     js = diag.to_json()
     figures = {"effects.png": plots.effect_pulses_figure(campaign, diag)}
-    if gap is not None:
-        figures.update({"bias_map.png": plots.bias_map_figure(gap), "gap_pulses.png": plots.gap_pulses_figure(gap)})
+    if diag.gap is not None:
+        figures.update({"bias_map.png": plots.bias_map_figure(diag.gap),
+                        "gap_pulses.png": plots.gap_pulses_figure(diag.gap)})
     for name, fig in figures.items():
         plots.save_png(fig, out / "figures" / name)
     js["figures"] = [f"figures/{name}" for name in figures]

@@ -150,7 +150,8 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
     labels : sequence of str
         Powertrain labels of the campaign (``powertrain`` gets a mass and a gap per label).
     mass_hint : float
-        Smallest nominal vehicle mass in kg (bounds the powertrain mass at 45 % of it).
+        Smallest nominal vehicle mass in kg (bounds the powertrain mass at 45 % of it and the
+        extra mass at 50 %).
     """
     check_effect(effect)
     if effect == "damping":
@@ -163,7 +164,7 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
                 Param("unloading.d0", "m", 1e-4, 0.1, (0.005, 0.02)),
                 Param("unloading.n", "-", 0.3, 6.0, (1.5, 1.0)))
     if effect == "mass":
-        return (Param("mass.extra", "kg", 1.0, 2000.0, (50.0, 200.0)),)
+        return (Param("mass.extra", "kg", 1.0, 0.5 * mass_hint, (50.0, 200.0)),)
     per_label = [p for lab in labels for p in (
         Param(f"powertrain.mass[{lab}]", "kg", 5.0, 0.45 * mass_hint, (150.0, 250.0)),
         Param(f"powertrain.gap[{lab}]", "m", 0.05, 1.2, (0.35, 0.5)))]

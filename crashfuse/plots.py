@@ -316,16 +316,6 @@ def gap_pulses_figure(gap, t_end: float = T_END) -> Figure:
     return fig
 
 
-def plot_bias_map(gap, path: str | os.PathLike) -> Path:
-    """Write the `bias_map_figure` of a GapMap as a PNG at ``path`` (atomically)."""
-    return save_png(bias_map_figure(gap), path)
-
-
-def plot_gap_pulses(gap, path: str | os.PathLike) -> Path:
-    """Write the `gap_pulses_figure` of a GapMap as a PNG at ``path`` (atomically)."""
-    return save_png(gap_pulses_figure(gap), path)
-
-
 def _figure(size: tuple[float, float]) -> Figure:
     fig = Figure(figsize=size)
     FigureCanvasAgg(fig)

@@ -159,8 +159,8 @@ def test_to_json_is_plain_json_with_units_in_the_keys(bumped, tmp_path):
     r = doc["regimes"][0]
     assert r["v0_lo_mph"] == pytest.approx(r["v0_lo_mps"] / 0.44704)
     assert set(doc["windows"]) == {"0-60"}
-    assert plots.plot_bias_map(bumped, tmp_path / "map.png").stat().st_size > 0
-    assert plots.plot_gap_pulses(bumped, tmp_path / "pulses.png").stat().st_size > 0
+    assert plots.save_png(plots.bias_map_figure(bumped), tmp_path / "map.png").stat().st_size > 0
+    assert plots.save_png(plots.gap_pulses_figure(bumped), tmp_path / "pulses.png").stat().st_size > 0
 
 
 @pytest.mark.parametrize("make, field", [

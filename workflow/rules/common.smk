@@ -92,5 +92,5 @@ def all_outputs(wildcards):
     if config["diagnosis"]["enabled"]:
         out.append(f"{RESULTS}/diagnosis/diagnosis.json")
     if config["validation"]["enabled"]:
-        out.append(f"{RESULTS}/diagnosis/validation/validation.csv")
+        out.append(f"{RESULTS}/diagnosis/validation.csv")
     return out

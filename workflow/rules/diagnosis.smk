@@ -30,8 +30,8 @@ rule diagnose:
 
 rule validate_diagnosis:
     output:
-        table=f"{RESULTS}/diagnosis/validation/validation.csv",
-        markdown=report(f"{RESULTS}/diagnosis/validation/validation.md", category="Diagnosis"),
+        table=f"{RESULTS}/diagnosis/validation.csv",
+        markdown=report(f"{RESULTS}/diagnosis/validation.md", category="Diagnosis"),
     params:
         out=lambda wildcards, output: Path(output.table).parent,
         strengths=" ".join(config["validation"]["strengths"]),
