@@ -275,8 +275,11 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
     se = np.sqrt((n - 1) / n * ((folds - folds.mean(axis=0)) ** 2).sum(axis=0)) if n > 1 else np.full(all_fit.size,
                                                                                                         np.nan)
     # A value at a bound means the law could not fit within physical limits: read it with care.
+    # A value still exactly at a starting point never moved: no test is sensitive to it (e.g. a
+    # powertrain gap that no test of that label reaches) - not identified.
     params = {p.name: {"value": float(v), "jackknife_se": _num(s), "unit": p.unit,
-                       "at_bound": bool(np.isclose(v, p.lower, rtol=1e-3) or np.isclose(v, p.upper, rtol=1e-3))}
+                       "at_bound": bool(np.isclose(v, p.lower, rtol=1e-3) or np.isclose(v, p.upper, rtol=1e-3)),
+                       "identified": not any(np.isclose(v, x, rtol=1e-9) for x in p.start)}
               for p, v, s in zip(c.fits.params, all_fit, se)}
     own = {k: v["value"] for k, v in params.items() if k.startswith(c.effect + ".")}
     return {
@@ -361,7 +364,8 @@ def markdown(js: dict) -> str:
     for e in js["effects"]:
         ps = "; ".join(f"{k} = {v['value']:.4g} {v['unit']}" + (f" (se {v['jackknife_se']:.2g})"
                                                                if v["jackknife_se"] is not None else "")
-                       + (" **at its bound**" if v["at_bound"] else "") for k, v in e["params"].items())
+                       + (" **at its bound**" if v["at_bound"] else "")
+                       + ("" if v["identified"] else " **not identified**") for k, v in e["params"].items())
         lines.append(f"- {e['effect']} (fitted with {', '.join(e['evidence']['fitted_with'])}): {ps}")
     lines += ["", "## How far it shrinks (mean ISO/TS 18571 overall, held-out)", "",
               "| model | " + " | ".join(f"{w} ms" for w in WINDOWS) + " |", "|---|" + "---|" * len(WINDOWS)]

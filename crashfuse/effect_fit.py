@@ -20,6 +20,7 @@ import numpy as np
 from crashfuse.effects import Plant, Param, curve_plant, parameters, simulate
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
+from crashfuse.projection import cae_curve
 from crashfuse.surrogate import CAECurve, CAESurrogate
 
 DT = 1.6e-4  # s, rollout step of the fits (2 samples of a 12.5 kHz campaign; Verlet error << noise)
@@ -100,19 +101,12 @@ def _label(campaign: Campaign, test_id: str) -> str:
 
 
 def _cae_curve(campaign: Campaign, test_id: str, surrogate, random_state):
-    pulse = campaign.pulses[test_id]
+    """The projection's choice of CAE curve; the surrogate is fitted only when a test needs it."""
     companion = campaign.companion(test_id)
-    if companion is not None:
-        curve = CAECurve.from_pulse(companion)
-        if curve.u is not None:
-            return curve, surrogate, "companion"
-    if surrogate is None:
+    if surrogate is None and (companion is None or CAECurve.from_pulse(companion).u is None):
         surrogate = CAESurrogate(random_state=random_state).fit(campaign)
-    stand_in = surrogate.curve(pulse.v0, pulse.front_weight, pulse.rear_weight, pulse.meta.get("powertrain"),
-                               pulse.meta.get("drive"))
-    if companion is not None:
-        return CAECurve.from_pulse(companion, stand_in), surrogate, "companion"
-    return stand_in, surrogate, "surrogate"
+    curve = cae_curve(campaign, campaign.pulses[test_id], surrogate)
+    return curve, surrogate, "surrogate" if companion is None else "companion"
 
 
 @dataclasses.dataclass(frozen=True)

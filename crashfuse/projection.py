@@ -230,7 +230,7 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
     missing = {}
     for test_id in test_ids:
         test = _test_pulse(campaign, test_id)
-        curve = _cae_curve(campaign, test, surrogate, use_companion, cae_curves or {})
+        curve = cae_curve(campaign, test, surrogate, use_companion, cae_curves or {})
         for name, rows in _test_rows(test, curve, n_grid, missing, target).items():
             x, v, bias = rows
             X = bias_inputs(columns, x, v, test.v0, test.front_weight, test.rear_weight,
@@ -332,8 +332,12 @@ def _test_pulse(campaign: Campaign, test_id: str) -> Pulse:
     return pulse
 
 
-def _cae_curve(campaign: Campaign, test: Pulse, surrogate, use_companion: bool, explicit) -> CAECurve:
-    """The CAE curve a test is compared with: explicit, companion (if allowed), or surrogate."""
+def cae_curve(campaign: Campaign, test: Pulse, surrogate, use_companion: bool = True, explicit=()) -> CAECurve:
+    """The CAE curve a test is compared with: explicit, companion (if allowed), or surrogate.
+
+    A companion that does not reach separation in its record borrows the surrogate's unloading
+    branch when a surrogate is given (:meth:`CAECurve.from_pulse`).
+    """
     if test.run_id in explicit:
         return explicit[test.run_id]
     companion = campaign.companion(test.run_id) if use_companion else None

@@ -138,6 +138,7 @@ def test_diagnosis_files(damping_world, tmp_path):
     js = json.loads((out / "diagnosis.json").read_text())
     assert {"verdict", "effects", "regions", "shrink"} <= set(js)
     assert js["effects"][0]["params"]["damping.c"]["unit"] == "N s/m"
+    assert js["effects"][0]["params"]["damping.c"]["identified"]
     assert "Verdict" in (out / "diagnosis.md").read_text()
     assert {"intervals", "windows", "regimes"} <= set(js["regions"])
     for name in ("effects.png", "bias_map.png", "gap_pulses.png"):
