@@ -145,8 +145,22 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
         surrogate = CAESurrogate(random_state=random_state).fit(campaign)
     case = test_case(campaign, surrogate, random_state)
     n = len(case.test_ids)
-    sets = loto_sets(n) if holdout else [[0], [0]]
-    cae = fit_folds(case, (), sets)
+    cae = fit_folds(case, (), loto_sets(n) if holdout else [[0], [0]])
+    chosen, candidates, current = _select(case, cae, effects, threshold, min_wins, say)
+    preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
+             "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
+    shrink = _shrink(campaign, case, preds, current, k, inputs, n_samples, random_state, surrogate,
+                     holdout and residual_model, say)
+    settings = dict(effects=list(effects), threshold=threshold, min_wins=min_wins, k=k, inputs=inputs,
+                    n_samples=n_samples, random_state=random_state, rollout_dt_s=DT)
+    gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
+    return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap)
+
+
+def _select(case: TestCase, cae: FoldFits, effects, threshold: float, min_wins: float, say):
+    """Greedy forward selection on held-out evidence; returns (chosen, candidates, final fits)."""
+    n = len(case.test_ids)
+    sets = loto_sets(n) if n >= 2 else [[0], [0]]
     chosen, candidates, current = [], {}, cae
     reference = _heldout(case, cae)
     say(f"diagnose: {n} tests, CAE held-out rms {_rms_g(reference):.3f} g")
@@ -171,14 +185,7 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
         chosen.append(best)
         current, reference = c.fits, c.heldout_mse
     say(f"diagnose: verdict {chosen or 'none'}")
-    preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
-             "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
-    shrink = _shrink(campaign, case, preds, current, chosen, k, inputs, n_samples, random_state, surrogate,
-                     holdout and residual_model, say)
-    settings = dict(effects=list(effects), threshold=threshold, min_wins=min_wins, k=k, inputs=inputs,
-                    n_samples=n_samples, random_state=random_state, rollout_dt_s=DT)
-    gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
-    return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap)
+    return chosen, candidates, current
 
 
 def _check(campaign, threshold, min_wins, in_sample):
@@ -213,7 +220,7 @@ def _start(case, current: FoldFits, effect: str):
     return np.hstack([current.theta, np.tile(new, (current.theta.shape[0], 1))])
 
 
-def _shrink(campaign, case, preds, fits, chosen, k, inputs, n_samples, random_state, surrogate, residual, say):
+def _shrink(campaign, case, preds, fits, k, inputs, n_samples, random_state, surrogate, residual, say):
     rows = []
     for model, decel in preds.items():
         for i, t in enumerate(case.test_ids):
