@@ -145,22 +145,23 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
         surrogate = CAESurrogate(random_state=random_state).fit(campaign)
     case = test_case(campaign, surrogate, random_state)
     n = len(case.test_ids)
-    cae = fit_folds(case, (), loto_sets(n) if holdout else [[0], [0]])
-    chosen, candidates, current = _select(case, cae, effects, threshold, min_wins, say)
+    sets = loto_sets(n) if holdout else [[0], [0]]  # a single test: its in-sample fit, twice
+    cae = fit_folds(case, (), sets)
+    chosen, candidates, current = _select(case, sets, cae, effects, threshold, min_wins, say)
     preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
              "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
     shrink = _shrink(campaign, case, preds, current, k, inputs, n_samples, random_state, surrogate,
                      holdout and residual_model, say)
     settings = dict(effects=list(effects), threshold=threshold, min_wins=min_wins, k=k, inputs=inputs,
-                    n_samples=n_samples, random_state=random_state, rollout_dt_s=DT)
+                    n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware)
     gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
     return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap)
 
 
-def _select(case: TestCase, cae: FoldFits, effects, threshold: float, min_wins: float, say):
-    """Greedy forward selection on held-out evidence; returns (chosen, candidates, final fits)."""
+def _select(case: TestCase, sets, cae: FoldFits, effects, threshold: float, min_wins: float, say):
+    """Greedy forward selection on held-out evidence over the training ``sets`` of ``cae``;
+    returns (chosen, candidates, final fits)."""
     n = len(case.test_ids)
-    sets = loto_sets(n) if n >= 2 else [[0], [0]]
     chosen, candidates, current = [], {}, cae
     reference = _heldout(case, cae)
     say(f"diagnose: {n} tests, CAE held-out rms {_rms_g(reference):.3f} g")

@@ -29,6 +29,8 @@ FD_STEP = 1e-3  # finite-difference step in log-parameter space
 MAX_ITER = 30
 RTOL = 1e-5  # a set has converged when an accepted step lowers its cost by less than this fraction
 S_HI_FACTOR = 1.6  # CAE tables reach this factor beyond the longest CAE/test crush
+RATE_SPEEDS = (0.8, 1.0, 1.2)  # impact speeds (x v0) of the surrogate curves giving the CAE's da/dv
+MIN_CAE_SPEEDS = 3  # distinct CAE impact speeds needed before the surrogate is asked for da/dv
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +50,8 @@ class TestCase:
         Rollout times in s (step :data:`DT`).
     cae_source : list of str
         ``companion`` or ``surrogate`` per test.
+    rate_aware : bool
+        Whether the CAE force follows the rollout's crush speed (:mod:`crashfuse.effects`).
     """
 
     test_ids: list
@@ -56,17 +60,23 @@ class TestCase:
     mask: np.ndarray
     time: np.ndarray
     cae_source: list
+    rate_aware: bool = False
 
     @property
     def n_steps(self) -> int:
         return self.time.size - 1
 
 
-def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_state: int = 0) -> TestCase:
+def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_state: int = 0,
+              rate_aware: bool = True) -> TestCase:
     """Every test of ``campaign`` with its CAE curve and measured pulse on the rollout grid.
 
     The CAE surrogate is fitted (on the CAE runs only) when a test names no companion run or its
-    companion never reaches zero velocity (the unloading branch then comes from the surrogate).
+    companion never reaches zero velocity (the unloading branch then comes from the surrogate), and
+    for ``rate_aware``: the CAE model's sensitivity to crush speed (:func:`crashfuse.effects.
+    rate_sensitivity`) from the surrogate's curves at :data:`RATE_SPEEDS` times each test's impact
+    speed. It needs CAE runs at :data:`MIN_CAE_SPEEDS` distinct impact speeds; with fewer the CAE
+    force depends on crush only (``TestCase.rate_aware`` False).
 
     Raises
     ------
@@ -78,6 +88,9 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
     if not campaign.cae:
         raise InputError("the campaign has no CAE runs: the diagnosis explains a CAE model's gap", campaign.root,
                          "source")
+    rate_aware = rate_aware and len({round(campaign.pulses[r].v0, 6) for r in campaign.cae}) >= MIN_CAE_SPEEDS
+    if surrogate is None and rate_aware:
+        surrogate = CAESurrogate(random_state=random_state).fit(campaign)
     curves, sources = [], []
     for t in campaign.tests:
         curve, surrogate, source = _cae_curve(campaign, t, surrogate, random_state)
@@ -90,8 +103,15 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
     mask = np.array([time <= p.time[-1] + 1e-12 for p in pulses])
     s_hi = S_HI_FACTOR * max(max(c.s[-1], c.s_max) for c in curves)
     labels = [_label(campaign, t) for t in campaign.tests]
-    plant = curve_plant(curves, [p.mass for p in pulses], labels, s_hi)
-    return TestCase(list(campaign.tests), plant, target, mask, time, sources)
+    neighbours = [_neighbours(surrogate, p) for p in pulses] if rate_aware else None
+    plant = curve_plant(curves, [p.mass for p in pulses], labels, s_hi, neighbours)
+    return TestCase(list(campaign.tests), plant, target, mask, time, sources, rate_aware)
+
+
+def _neighbours(surrogate: CAESurrogate, test) -> list:
+    """The surrogate's CAE curves of a test's vehicle at :data:`RATE_SPEEDS` times its impact speed."""
+    return [surrogate.curve(f * test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
+                            test.meta.get("drive")) for f in RATE_SPEEDS]
 
 
 def _label(campaign: Campaign, test_id: str) -> str:

@@ -11,20 +11,28 @@ unloading coordinate ``u = s_max - s``::
 
     a = (F_crush + F_extra) / M_eff
 
-* ``F_crush`` is the CAE model's crush force: ``M a_CAE(s)`` on loading; on unloading the CAE
+* ``F_crush`` is the CAE model's crush force: ``M a_CAE(s, v)`` on loading; on unloading the CAE
   run's unloading curve with its stiffness kept, started from the force reached at the rollout's
   own maximum crush (which moves when an effect changes the pulse): with
   ``r = a_CAE(s_max) / a_CAE,u(0)``, ``F_crush = M r a_CAE,u(u / r)`` - force and elastic
   spring-back both scale with the peak force, as for a linear elastic unloading.
+* ``a_CAE(s, v) = a_CAE(s) + (da/dv)(s) (v - v_CAE(s))``: the CAE run's own deceleration along its
+  own trajectory ``v_CAE(s)``, moved to the rollout's velocity with the CAE model's sensitivity to
+  crush speed at fixed crush (:func:`rate_sensitivity`, from CAE curves at neighbouring impact
+  speeds; 0 when none are given). A CAE model with rate effects of its own (material rate
+  hardening, damping) then responds to an effect that changes the velocity - an extra mass
+  arrives faster at every crush - instead of replaying its force-crush curve. ``F_crush >= 0``.
 * ``F_extra`` collects added forces (0 for the CAE model); ``M_eff`` starts at ``M``.
 
 The laws (each one modifies the balance; their order does not matter):
 
-``strain_rate``  Cowper-Symonds rate hardening of the crush force on loading,
-    ``F_crush *= 1 + (v / D)^(1/q)`` (``d`` m/s: the crush speed at which the force doubles; ``q``).
+``strain_rate``  Cowper-Symonds rate hardening of the static crush strength on loading,
+    ``F_crush += M a_CAE(s, 0) (v / D)^(1/q)`` (``d`` m/s: the crush speed at which the static
+    strength doubles; ``q``). Only the strength hardens: the CAE model's own viscous and inertial
+    forces are not multiplied (without ``da/dv`` the whole CAE force counts as static).
 ``damping``      Viscous (Kelvin-Voigt) crush damping ``F_extra += c v`` on both branches (``c`` N s/m).
 ``unloading``    Hysteretic power-law unloading, replacing the CAE unloading: with the static force
-    at maximum crush ``F_m = M a_CAE(s_max)`` and the elastic spring-back
+    at maximum crush ``F_m = M a_CAE(s_max, 0)`` and the elastic spring-back
     ``delta = d0 + F_m / k``, ``F_crush = F_m ((delta - u) / delta)^n`` for ``u < delta``, else 0
     (``k`` N/m, ``d0`` m, ``n``).
 ``powertrain``   A second mass ``m_p`` (per powertrain label) riding in the body is arrested by the
@@ -84,9 +92,12 @@ class Plant:
     ----------
     s_step, u_step : float
         Uniform grid steps in m of the loading (from s = 0) and unloading (from u = 0) tables.
-    a_load : ndarray, shape (n, n_s)
-        CAE loading deceleration (m/s^2) of each of ``n`` conditions on the s grid (continued
-        beyond the run's data with its last stiffness).
+    a_rest : ndarray, shape (n, n_s)
+        CAE loading deceleration (m/s^2) of each of ``n`` conditions on the s grid at zero crush
+        speed: ``a_CAE(s) - (da/dv)(s) v_CAE(s)`` (the CAE curve itself when ``dadv`` is 0;
+        continued beyond the run's data as :func:`_reference` says).
+    dadv : ndarray, shape (n, n_s)
+        Sensitivity of the CAE loading deceleration to crush speed at fixed crush (1/s).
     a_unload : ndarray, shape (n, n_u)
         CAE unloading deceleration (m/s^2) on the u grid (0 beyond the spring-back).
     mass : ndarray, shape (n,)
@@ -100,7 +111,8 @@ class Plant:
 
     s_step: float
     u_step: float
-    a_load: np.ndarray
+    a_rest: np.ndarray
+    dadv: np.ndarray
     a_unload: np.ndarray
     mass: np.ndarray
     v0: np.ndarray
@@ -108,34 +120,108 @@ class Plant:
     labels: tuple
 
     @classmethod
-    def from_curves(cls, curves, mass, group, labels, s_hi: float, n_s: int = 2048, n_u: int = 512) -> "Plant":
-        """Tabulate CAE curves (:class:`crashfuse.surrogate.CAECurve`) up to crush ``s_hi`` (m)."""
+    def from_curves(cls, curves, mass, group, labels, s_hi: float, neighbours=None, n_s: int = 2048,
+                    n_u: int = 512) -> "Plant":
+        """Tabulate CAE curves (:class:`crashfuse.surrogate.CAECurve`) up to crush ``s_hi`` (m).
+
+        ``neighbours``, if given, holds per curve the CAE curves of the same vehicle at a few other
+        impact speeds (:func:`rate_sensitivity`); without it the CAE force depends on crush only.
+        """
         s = np.linspace(0.0, s_hi, n_s)
         u_hi = max(c.u_end for c in curves) * 1.05
         u = np.linspace(0.0, u_hi, n_u)
-        return cls(s[1], u[1], np.array([c.loading(s) for c in curves]), np.array([c.unloading(u) for c in curves]),
+        neighbours = [()] * len(curves) if neighbours is None else neighbours
+        a, v = (np.array(x) for x in zip(*(_reference(c, nb, s) for c, nb in zip(curves, neighbours))))
+        dadv = np.array([rate_sensitivity(nb, s) if nb else np.zeros(n_s) for nb in neighbours])
+        return cls(s[1], u[1], a - dadv * v, dadv, np.array([c.unloading(u) for c in curves]),
                    np.asarray(mass, float), np.array([c.v0 for c in curves]), np.asarray(group, int), tuple(labels))
 
     def subset(self, rows) -> "Plant":
         """The plant of the conditions ``rows`` (in that order, repeats allowed)."""
         rows = np.asarray(rows, int)
-        return dataclasses.replace(self, a_load=self.a_load[rows], a_unload=self.a_unload[rows],
-                                   mass=self.mass[rows], v0=self.v0[rows], group=self.group[rows])
+        return dataclasses.replace(self, a_rest=self.a_rest[rows], dadv=self.dadv[rows],
+                                   a_unload=self.a_unload[rows], mass=self.mass[rows], v0=self.v0[rows],
+                                   group=self.group[rows])
 
-    def loading(self, s: np.ndarray) -> np.ndarray:
-        """CAE loading deceleration (m/s^2) of every sample at its own ``s`` (m), shape (n,)."""
-        return _lookup(self.a_load, s / self.s_step)
+    def loading(self, s: np.ndarray, v) -> tuple[np.ndarray, np.ndarray]:
+        """CAE loading deceleration (m/s^2) of every sample at its own crush ``s`` (m) and crush speed
+        ``v`` (m/s), and the same at rest: two arrays of shape (n,), both >= 0."""
+        i, w = _cell(s / self.s_step, self.a_rest.shape[1])
+        rest = _take(self.a_rest, i, w)
+        return np.maximum(rest + _take(self.dadv, i, w) * v, 0.0), np.maximum(rest, 0.0)
 
     def unloading(self, u: np.ndarray) -> np.ndarray:
         """CAE unloading deceleration (m/s^2) of every sample at its own ``u`` (m), shape (n,)."""
-        return _lookup(self.a_unload, u / self.u_step)
+        return _take(self.a_unload, *_cell(u / self.u_step, self.a_unload.shape[1]))
 
 
-def _lookup(table: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """Row-wise linear interpolation of ``table`` at fractional indices ``pos`` (held at the ends)."""
-    pos = np.clip(pos, 0.0, table.shape[1] - 1.000001)
+def _reference(curve, neighbours, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Loading deceleration (m/s^2) and velocity (m/s) of the reference trajectory on ``s`` (m).
+
+    The CAE run's own until it stops; beyond, the fastest neighbour's while that still moves - a
+    rollout that crushes further than the CAE run meets the structure the faster CAE run crushed,
+    not the run's last stiffness continued.
+    """
+    a, v = curve.loading(s), crush_speed(curve, s)
+    if neighbours:
+        fast = max(neighbours, key=lambda c: c.v0)
+        beyond = (v == 0.0) & (s > curve.s_max)
+        a = np.where(beyond, fast.loading(s), a)
+        v = np.where(beyond, crush_speed(fast, s), v)
+    return a, v
+
+
+def crush_speed(curve, s: np.ndarray) -> np.ndarray:
+    """Velocity (m/s) of a CAE curve's own rollout at crush ``s`` (m), 0 after it stops.
+
+    From the energy balance ``v^2 = v0^2 - 2 int_0^s a ds`` (trapezoids on ``s``).
+    """
+    a = curve.loading(s)
+    work = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(s))])
+    v2 = curve.v0 ** 2 - 2.0 * work
+    return np.sqrt(np.maximum(v2, 0.0)) * (np.minimum.accumulate(v2) > 0.0)
+
+
+def rate_sensitivity(curves, s: np.ndarray) -> np.ndarray:
+    """The CAE model's ``da/dv`` at fixed crush ``s`` (m) from its curves at several impact speeds.
+
+    Two curves of one vehicle at impact speeds ``v1 < v2`` reach crush ``s`` at speeds
+    ``v_1(s) < v_2(s)``; ``(a_2(s) - a_1(s)) / (v_2(s) - v_1(s))`` is the secant sensitivity while the
+    slower one still moves. Adjacent pairs are averaged where valid; beyond the last valid crush the
+    last value is held.
+
+    Parameters
+    ----------
+    curves : sequence of CAECurve
+        At least two, of one vehicle, at distinct impact speeds.
+    s : ndarray, shape (n_s,)
+        Increasing crush grid in m.
+
+    Returns
+    -------
+    ndarray, shape (n_s,)
+        In 1/s ((m/s^2) per (m/s)).
+    """
+    curves = sorted(curves, key=lambda c: c.v0)
+    a = np.array([c.loading(s) for c in curves])
+    v = np.array([crush_speed(c, s) for c in curves])
+    valid = v[:-1] > 0.0
+    slope = np.where(valid, np.diff(a, axis=0) / np.where(valid, np.diff(v, axis=0), 1.0), 0.0)
+    count = valid.sum(axis=0)
+    mean = slope.sum(axis=0) / np.maximum(count, 1)
+    last = np.maximum.accumulate(np.where(count > 0, np.arange(s.size), 0))  # hold the last valid value
+    return mean[last]
+
+
+def _cell(pos: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grid index and weight of fractional positions ``pos`` on a table of ``n`` columns (held at the ends)."""
+    pos = np.clip(pos, 0.0, n - 1.000001)
     i = pos.astype(int)
-    w = pos - i
+    return i, pos - i
+
+
+def _take(table: np.ndarray, i: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Row-wise linear interpolation of ``table`` at cells ``i`` with weights ``w``."""
     rows = np.arange(table.shape[0])
     return table[rows, i] * (1.0 - w) + table[rows, i + 1] * w
 
@@ -200,12 +286,13 @@ def decel_fn(plant: Plant, effects, theta: dict):
 
     def decel(st: State) -> np.ndarray:
         load = st.loading
-        f_max = plant.mass * plant.loading(st.s_max)  # static crush force at maximum crush (N)
+        f_max = plant.mass * plant.loading(st.s_max, 0.0)[1]  # static crush force at maximum crush (N)
         ratio = np.maximum(f_max / (plant.mass * unl0), 1e-6)
-        force = np.where(load, plant.mass * plant.loading(st.s), f_max * plant.unloading(st.u / ratio) / unl0)
+        a_crush, a_rest = plant.loading(st.s, st.v)
+        force = np.where(load, plant.mass * a_crush, f_max * plant.unloading(st.u / ratio) / unl0)
         if "strain_rate" in effects:
             rate = np.maximum(st.v, 0.0) / theta["strain_rate.d"]
-            force = np.where(load, force * (1.0 + rate ** (1.0 / theta["strain_rate.q"])), force)
+            force = np.where(load, force + plant.mass * a_rest * rate ** (1.0 / theta["strain_rate.q"]), force)
         if "unloading" in effects:
             delta = theta["unloading.d0"] + f_max / theta["unloading.k"]
             frac = np.clip((delta - st.u) / delta, 0.0, 1.0)
@@ -243,11 +330,12 @@ def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Tra
     return rollout(decel_fn(plant, effects, theta), plant.v0, dt, n_steps)
 
 
-def curve_plant(curves, masses, labels_of, s_hi: float) -> Plant:
-    """A :class:`Plant` from CAE curves, nominal masses (kg) and each curve's powertrain label."""
+def curve_plant(curves, masses, labels_of, s_hi: float, neighbours=None) -> Plant:
+    """A :class:`Plant` from CAE curves, nominal masses (kg), each curve's powertrain label and,
+    optionally, its neighbours at other impact speeds (:meth:`Plant.from_curves`)."""
     labels = tuple(sorted(set(labels_of)))
     group = [labels.index(lab) for lab in labels_of]
-    return Plant.from_curves(list(curves), masses, group, labels, s_hi)
+    return Plant.from_curves(list(curves), masses, group, labels, s_hi, neighbours)
 
 
 def headline(effect: str, params: dict) -> dict:

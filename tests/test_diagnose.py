@@ -46,7 +46,7 @@ def _state(s, v, s_max=None, loading=True):
 def test_laws_against_closed_forms(case):
     plant = case.plant.subset([7])  # T08, 35 mph
     s, v = 0.3, 12.0
-    a_cae = plant.loading(np.array([s]))[0]
+    a_cae, a_rest = (x[0] for x in plant.loading(np.array([s]), np.array([v])))  # at this crush speed; at rest
     m = plant.mass[0]
     base = decel_fn(plant, (), {})(_state(s, v))[0]
     assert base == pytest.approx(a_cae, rel=1e-12)
@@ -56,13 +56,13 @@ def test_laws_against_closed_forms(case):
     assert heavy == pytest.approx(a_cae * m / (m + 100.0), rel=1e-12)
     rate = decel_fn(plant, ("strain_rate",), {"strain_rate.d": np.array([3000.0]),
                                              "strain_rate.q": np.array([4.0])})(_state(s, v))[0]
-    assert rate == pytest.approx(a_cae * (1 + (v / 3000.0) ** 0.25), rel=1e-12)
+    assert rate == pytest.approx(a_cae + a_rest * (v / 3000.0) ** 0.25, rel=1e-12)  # the static strength hardens
 
 
 def test_unloading_law(case):
     plant = case.plant.subset([7])
     s_max, u = 0.5, 0.01
-    f_m = plant.mass[0] * plant.loading(np.array([s_max]))[0]
+    f_m = plant.mass[0] * plant.loading(np.array([s_max]), 0.0)[1][0]  # static: the car stopped
     theta = {"unloading.k": np.array([5e7]), "unloading.d0": np.array([0.005]), "unloading.n": np.array([1.5])}
     delta = 0.005 + f_m / 5e7
     got = decel_fn(plant, ("unloading",), theta)(_state(s_max - u, -1.0, s_max, loading=False))[0]
@@ -80,11 +80,11 @@ def test_powertrain_arrest_and_mount_yield(case):
     fn = decel_fn(plant, ("powertrain",), theta)
     m = plant.mass[0]
     before, after = 0.35, 0.55
-    assert fn(_state(before, 10.0))[0] == pytest.approx(plant.loading(np.array([before]))[0], rel=1e-12)
-    expected = (m * plant.loading(np.array([after]))[0] + 5e4) / (m - 200.0)  # yielded mount, body only
+    assert fn(_state(before, 10.0))[0] == pytest.approx(plant.loading(np.array([before]), 10.0)[0][0], rel=1e-12)
+    expected = (m * plant.loading(np.array([after]), 10.0)[0][0] + 5e4) / (m - 200.0)  # yielded mount, body only
     assert fn(_state(after, 10.0))[0] == pytest.approx(expected, rel=1e-12)
     half = 0.4 + 0.5 * 0.01  # half the yield travel: half the yield force
-    expected = (m * plant.loading(np.array([half]))[0] + 2.5e4) / (m - 200.0)
+    expected = (m * plant.loading(np.array([half]), 10.0)[0][0] + 2.5e4) / (m - 200.0)
     assert fn(_state(half, 10.0))[0] == pytest.approx(expected, rel=1e-9)
 
 
@@ -198,3 +198,12 @@ def test_a_law_at_its_upper_bound_is_flagged(case):
     assert Candidate("mass", 1, at_bound, np.ones(2), np.ones(2)).at_upper_bound == ["mass.extra"]
     inside = ef.FoldFits(("mass",), params, np.array([[upper], [0.5 * upper]]), np.zeros(2))
     assert Candidate("mass", 1, inside, np.ones(2), np.ones(2)).at_upper_bound == []  # the all-tests row decides
+
+
+def test_a_parameter_that_never_left_its_start_is_not_identified(case):
+    from crashfuse.diagnose import Candidate, _candidate_json
+    params = ef.effect_params(case, ("damping",))
+    for all_tests, identified in ((params[0].start[0], False), (2500.0, True)):
+        fits = ef.FoldFits(("damping",), params, np.array([[2500.0], [all_tests]]), np.zeros(2))
+        js = _candidate_json(Candidate("damping", 1, fits, np.ones(1), np.ones(1)), case)
+        assert js["params"]["damping.c"]["identified"] is identified

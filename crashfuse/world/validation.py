@@ -26,7 +26,7 @@ from crashfuse.world.generate import WORLD_JSON, generate
 from crashfuse.world.presets import resolve
 
 TOLERANCE = {"realistic": 0.25, "subtle": 0.50}  # relative error allowed on the headline parameter
-N_CAE = 24  # the diagnosis needs the companions only; a few more CAE runs keep the campaign realistic
+N_CAE = 60  # the CAE surrogate behind the CAE model's speed sensitivity needs a few dozen runs besides the companions
 COLUMNS = ("withheld", "strength", "seed", "verdict", "first", "first_correct", "spurious", "parameter", "true",
            "fitted", "rel_error", "within_tolerance", "heldout_mse_ratio", "iso_0_60_cae", "iso_0_60_effects",
            "shrinks", "seconds")
