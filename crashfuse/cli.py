@@ -176,7 +176,7 @@ def _diagnose(args) -> int:
     if surrogate is not None:
         surrogate.check_campaign(campaign, args.surrogate)
     diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, min_wins=args.min_wins, k=args.k,
-                    n_samples=args.samples, random_state=args.seed, surrogate=surrogate, in_sample=args.in_sample,
+                    inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate, in_sample=args.in_sample,
                     residual_model=not args.no_residual)
     out = write_diagnosis(diag, args.out, campaign)
     print(f"verdict: {', '.join(diag.verdict) or 'none'} -> {out / 'diagnosis.md'}")
@@ -361,6 +361,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--k", type=_positive, default=1,
                    help="mixture size of the bias model of the gap map and the GMM-GPR rows (default 1)")
     s.add_argument("--samples", type=_positive, default=200, help="Monte Carlo samples per GMM-GPR fold (default 200)")
+    s.add_argument("--inputs", choices=("paper", "state"), default="state",
+                   help="bias inputs of the GMM-GPR rows (default state, the method's default)")
     s.add_argument("--surrogate", default=None, help="CAE surrogate file from 'crashfuse prepare' (default: fit it)")
     s.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
     s.add_argument("--in-sample", action="store_true", help="allow a single test (no hold-out; evidence in-sample)")

@@ -101,7 +101,7 @@ class Diagnosis:
 
 
 def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, min_wins: float = MIN_WINS,
-             k: int = 1, inputs: str = "paper", n_samples: int = 200, random_state: int = 0,
+             k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
              surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,
              regions: bool = True, progress=print) -> Diagnosis:
     """Diagnose the gap between a campaign's CAE runs and its tests.
