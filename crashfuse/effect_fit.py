@@ -109,9 +109,19 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
 
 
 def _neighbours(surrogate: CAESurrogate, test) -> list:
-    """The surrogate's CAE curves of a test's vehicle at :data:`RATE_SPEEDS` times its impact speed."""
-    return [surrogate.curve(f * test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
-                            test.meta.get("drive")) for f in RATE_SPEEDS]
+    """The surrogate's CAE curves of a test's vehicle at :data:`RATE_SPEEDS` times its impact speed.
+
+    A speed whose predicted curve cannot absorb the impact energy (far outside the CAE runs) is
+    left out; with fewer than two curves left the test's CAE force depends on crush only.
+    """
+    curves = []
+    for f in RATE_SPEEDS:
+        try:
+            curves.append(surrogate.curve(f * test.v0, test.front_weight, test.rear_weight,
+                                          test.meta.get("powertrain"), test.meta.get("drive")))
+        except InputError:
+            continue
+    return curves if len(curves) >= 2 else []
 
 
 def _label(campaign: Campaign, test_id: str) -> str:

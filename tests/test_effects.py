@@ -88,3 +88,23 @@ def test_rate_hardening_acts_on_the_static_strength():
     crush, rest = plant.loading(s, v)
     assert crush[0] == pytest.approx((K * 0.2 + C * 10.0) / M, rel=0.01)
     assert rest[0] == pytest.approx(K * 0.2 / M, rel=0.02)
+
+
+def test_neighbours_leave_out_speeds_the_surrogate_cannot_predict():
+    from types import SimpleNamespace
+
+    from crashfuse.effect_fit import _neighbours
+    from crashfuse.errors import InputError
+
+    class Surrogate:
+        def __init__(self, v_max):
+            self.v_max = v_max
+
+        def curve(self, v0, *args):
+            if v0 > self.v_max:
+                raise InputError("cannot absorb the impact energy", field="v0")
+            return _curve(v0)
+
+    test = SimpleNamespace(v0=15.0, front_weight=900.0, rear_weight=600.0, meta={})
+    assert [c.v0 for c in _neighbours(Surrogate(16.0), test)] == pytest.approx([12.0, 15.0])
+    assert _neighbours(Surrogate(14.0), test) == []
