@@ -21,7 +21,7 @@ from crashfuse.io.campaign import read_campaign
 from crashfuse.model import fit_model
 from crashfuse.surrogate import CAESurrogate
 
-DEFAULT_K = 2  # fixed before looking at held-out scores (see docs/method-rollout.md)
+DEFAULT_K = 1  # model.choose_k picks it from training data (docs/method-rollout.md, "Default K")
 
 
 def _campaign(folder):
