@@ -123,7 +123,7 @@ def _predict(args) -> int:
 
     model = load_model(args.model)
     pred = predict(model, args.v0_mph * MPH, args.front_weight_lb * LB, args.rear_weight_lb * LB,
-                   args.powertrain, args.drive, n_samples=args.samples, random_state=args.seed)
+                   args.powertrain, args.drive, n_samples=args.samples, random_state=args.seed, band=args.band)
     with atomic_path(args.out) as tmp:
         pred.frame().to_csv(tmp, index=False, float_format="%.6g")
     if pred.extrapolation["any"]:
@@ -160,7 +160,7 @@ def _evaluate(args) -> int:
     result = evaluate(campaign, ks=args.k, inputs=args.inputs, out=args.out,
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
                       holdout=args.holdout, use_companion=args.use_companion, assignment=args.assignment,
-                      extra_inputs=args.extra_inputs, n_grid=args.n_grid)
+                      extra_inputs=args.extra_inputs, n_grid=args.n_grid, band=args.band)
     summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
     print(summary.mean().round(3).to_string())
     return 0
@@ -231,6 +231,12 @@ def _positive(text: str) -> int:
     if value < 1:
         raise InputError(f"expected an integer >= 1, got {text!r}", field="arguments")
     return value
+
+
+def _add_band_option(s) -> None:
+    s.add_argument("--band", choices=("test", "latent"), default="test",
+                   help="reported deceleration band: where a new test is expected (default), or the bias "
+                        "function's uncertainty alone")
 
 
 def _add_method_options(s) -> None:
@@ -334,6 +340,7 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=_seed, default=0, help="seed of the draws (default 0)")
     s.add_argument("--out", required=True, help="prediction CSV to write")
     s.add_argument("--json", action="store_true", help="print the pulse metrics with bands as JSON")
+    _add_band_option(s)
     s.set_defaults(func=_predict)
 
     s = sub.add_parser("evaluate", help="leave-one-test-out ISO/TS 18571 table, predictions and band coverage")
@@ -347,6 +354,7 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="run only the fold holding out this test (repeatable; default every test)")
     s.add_argument("--surrogate", default=None, help="CAE surrogate file from 'crashfuse prepare' (default: fit it)")
     _add_method_options(s)
+    _add_band_option(s)
     s.add_argument("--out", required=True, help="output folder")
     s.set_defaults(func=_evaluate)
 

@@ -6,6 +6,10 @@ data, and shared by every fold), the held-out test's condition is predicted
 (:func:`crashfuse.rollout.predict`) and the Monte Carlo mean is rated against the held-out (CFC 60)
 test over 0-20, 0-40 and 0-60 ms. The ``CAE`` rows rate the test's companion CAE run (the surrogate's
 zero-bias pulse where a test has none). Folds run in parallel processes (joblib/loky).
+
+Band coverage: the fraction of held-out test samples in 0-60 ms inside the reported 95 % band
+(``band='test'`` by default: where a new test is expected, :func:`crashfuse.rollout.predict`), and
+inside the latent band (the bias function's uncertainty alone) beside it.
 """
 
 from __future__ import annotations
@@ -35,8 +39,8 @@ from crashfuse.surrogate import CAESurrogate
 from crashfuse.units import G0, MS
 
 COVERAGE_WINDOW_MS = (0, 60)
-COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "n_points", "extrapolation", "n_gps_loading",
-                    "n_gps_unloading", "cluster_switches", "fit_s", "predict_s"]
+COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "coverage_latent", "n_points", "extrapolation",
+                    "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,7 +53,8 @@ class Evaluation:
         Columns :data:`crashfuse.report.COLUMNS`; one row per test, input mode, model (CAE, K1, ...) and window.
     coverage : DataFrame
         Columns ``COVERAGE_COLUMNS``: per fold, the fraction of held-out test points in 0-60 ms inside
-        the 95 % band, the extrapolation flag, the GPs per branch, how often the selected GP changes
+        the reported 95 % band (``coverage``) and inside the latent band (``coverage_latent``), the
+        extrapolation flag, the GPs per branch, how often the selected GP changes
         along the mean-function rollout, and the fold's fit and predict times (s).
     predictions : dict of (str, str, str) to DataFrame
         Per fold ``(inputs, model, test_id)``: the prediction table (:meth:`Prediction.frame`) with
@@ -69,7 +74,8 @@ class Evaluation:
 
 def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.PathLike | None = None,
              n_samples: int = 1000, random_state: int = 0, n_jobs: int = 2, surrogate: CAESurrogate | None = None,
-             holdout=None, progress: Callable[[str], None] | None = print, **fit_kwargs) -> Evaluation:
+             holdout=None, progress: Callable[[str], None] | None = print, band: str = "test",
+             **fit_kwargs) -> Evaluation:
     """Every leave-one-test-out fold for each K in ``ks`` and each input mode.
 
     Parameters
@@ -94,6 +100,9 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         Run only the folds holding out these tests (default: every test), e.g. one fold per job.
     progress : callable, optional
         Receives one line per finished fold.
+    band : {"test", "latent"}
+        The reported band (:func:`crashfuse.rollout.predict`) that ``coverage`` measures; the latent
+        band's coverage is recorded either way.
     **fit_kwargs
         Passed to :func:`crashfuse.model.fit_model` (``assignment``, ``extra_inputs``, ``n_grid``,
         ``use_companion``, ``target``, ``weights``, ``velocity``, and :class:`crashfuse.bias.GMMGPBias` settings
@@ -110,7 +119,7 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     folds = [(mode, k, t) for mode in inputs for k in ks for t in tests]
     say = progress or (lambda line: None)
     say(f"evaluate: {len(folds)} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
-    jobs = (delayed(_fold)(campaign, surrogate, mode, k, t, n_samples, random_state, fit_kwargs)
+    jobs = (delayed(_fold)(campaign, surrogate, mode, k, t, n_samples, random_state, band, fit_kwargs)
             for mode, k, t in folds)
     results = []
     for i, res in enumerate(Parallel(n_jobs=n_jobs, return_as="generator")(jobs), 1):
@@ -157,7 +166,7 @@ def _check_grid(ks, inputs):
     return ks, inputs
 
 
-def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, fit_kwargs) -> dict:
+def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, band, fit_kwargs) -> dict:
     """Fit without ``test_id``, predict its condition, rate and measure the band coverage."""
     t0 = time.perf_counter()
     model = fit_model(campaign, k, inputs=mode, holdout=test_id, random_state=random_state, surrogate=surrogate,
@@ -166,15 +175,16 @@ def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, fit_kw
     test = campaign.pulses[test_id].after_contact()
     pred = predict(model, test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
                    test.meta.get("drive"), n_samples=n_samples, random_state=random_state,
-                   duration=float(test.time[-1]), dt=test.dt)
+                   duration=float(test.time[-1]), dt=test.dt, band=band)
     t2 = time.perf_counter()
     name = model_label(k)
     iso = [_iso_row(test, pred.time, pred.decel, test_id, mode, name, w) for w in WINDOWS]
     frame = pred.frame()
     frame["test_decel_g"] = np.interp(pred.time, test.time, test.decel) / G0
     cov, n = band_coverage(test.time, test.decel, pred.time, pred.decel_lo, pred.decel_hi)
-    coverage = dict(test_id=test_id, inputs=mode, model=name, coverage=cov, n_points=n,
-                    extrapolation=pred.extrapolation["any"],
+    cov_latent, _ = band_coverage(test.time, test.decel, pred.time, pred.decel_latent_lo, pred.decel_latent_hi)
+    coverage = dict(test_id=test_id, inputs=mode, model=name, coverage=cov, coverage_latent=cov_latent,
+                    n_points=n, extrapolation=pred.extrapolation["any"],
                     n_gps_loading=_n_gps(model, "loading"), n_gps_unloading=_n_gps(model, "unloading"),
                     cluster_switches=cluster_switches(model, pred), fit_s=t1 - t0, predict_s=t2 - t1)
     record = FoldRecord(
@@ -182,9 +192,10 @@ def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, fit_kw
         campaign={"name": campaign.root.name if campaign.root else "campaign", "hash": model.campaign_hash},
         conditions={"v0_mps": test.v0, "front_weight_kg": test.front_weight, "rear_weight_kg": test.rear_weight,
                     "powertrain": str(test.meta.get("powertrain")), "drive": str(test.meta.get("drive"))},
-        settings=_scalar_settings(model.settings, n_samples),
+        settings={**_scalar_settings(model.settings, n_samples), "band": band},
         iso={row["window_ms"]: {s: row[s] for s in SCORES} for row in iso},
-        metrics={"coverage_95_0_60": cov, "fit_seconds": t1 - t0, "predict_seconds": t2 - t1,
+        metrics={"coverage_95_0_60": cov, "coverage_latent_95_0_60": cov_latent, "fit_seconds": t1 - t0,
+                 "predict_seconds": t2 - t1,
                  "cluster_switches": float(coverage["cluster_switches"]),
                  "n_gps_loading": float(coverage["n_gps_loading"]),
                  "n_gps_unloading": float(coverage["n_gps_unloading"]),

@@ -270,7 +270,7 @@ def locate_gap(campaign: Campaign, surrogate: CAESurrogate | None = None, k: int
     if k is None:
         k, bic = choose_k(data.X, random_state)
     model = fit_model(campaign, k, inputs="paper", use_companion=True, surrogate=surrogate,
-                      random_state=random_state)
+                      random_state=random_state, estimate_scatter=False)  # significance: the latent band
     tests = tuple(_test_gap(campaign, model, t) for t in campaign.tests)
     total = sum(_sq_mass(p, None, -np.inf, np.inf) for t in tests for p in t.profiles.values())
     intervals = tuple(sorted(_intervals(tests, total), key=lambda i: -i.share))

@@ -497,7 +497,8 @@ def choose_k(campaign: Campaign, ks=(1, 2, 3), inputs: str = "state", holdout=No
         logs = []
         for t in train:
             model = fit_model(campaign, k, inputs, holdout=[t, *(set(campaign.tests) - set(train))],
-                              random_state=random_state, surrogate=surrogate, **fit_kwargs)
+                              random_state=random_state, surrogate=surrogate,
+                              **{"estimate_scatter": False, **fit_kwargs})  # the density uses the latent sd
             for b in BRANCHES:
                 d, est = data.branch(b), model.bias_.get(b)
                 rows = d.groups == t

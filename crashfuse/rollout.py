@@ -25,6 +25,14 @@ path by the deviation on that path (the draws' spread changes slowly with v wher
 Two rollouts are reported: the deterministic *mean-function* rollout (bias = GP mean) and the
 Monte Carlo ensemble. The scored prediction, ``Prediction.decel``, is the **Monte Carlo mean**:
 the mean over samples of the deceleration at each time (issue 4, item 5).
+
+Two deceleration bands. The *latent* band (``decel_latent_lo/hi``) is the ensemble's 2.5/97.5 %
+percentiles: the bias function's uncertainty only. A new physical test also scatters about the
+bias function (near-replicate tests differ by 0.3-1 g), so the reported band for ``band='test'``
+(default) widens the latent one by the bias model's test-to-test scatter
+(:meth:`crashfuse.bias.GMMGPBias.scatter_std`, calibrated on grouped leave-one-test-out residuals),
+in quadrature on each side of the Monte Carlo mean. ``band='latent'`` reports the latent band.
+The draws, the mean and every other band are the same either way.
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ import dataclasses
 
 import numpy as np
 import pandas as pd
+from scipy.stats import norm
 
 from crashfuse.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
@@ -41,6 +50,7 @@ from crashfuse.projection import BRANCHES, bias_scale
 from crashfuse.units import G0, KMH, MM, MS
 
 BAND = (2.5, 97.5)  # percent: the 95 % band
+BANDS = ("test", "latent")  # reported deceleration band: a new test's, or the bias function's alone
 N_X = 160  # grid points per branch coordinate for the joint draws
 N_V = 16  # velocity grid points of the state-mode mean table
 GRID_MARGIN = 1.3  # branch grids reach this factor beyond the data and CAE ranges
@@ -56,8 +66,16 @@ class Prediction:
         Time since contact in s.
     decel, velocity, displacement : ndarray, shape (n,)
         Monte Carlo means (m/s^2, m/s, m): ``decel`` is the scored prediction.
-    decel_lo, decel_hi, velocity_lo, velocity_hi, displacement_lo, displacement_hi : ndarray, shape (n,)
-        2.5 and 97.5 percentiles over the samples.
+    decel_lo, decel_hi : ndarray, shape (n,)
+        The reported 95 % deceleration band (m/s^2): ``band='test'``, where a new test is expected
+        (latent band widened by the test-to-test scatter), or ``band='latent'`` (equal to the next).
+    decel_latent_lo, decel_latent_hi : ndarray, shape (n,)
+        2.5 and 97.5 percentiles of the Monte Carlo decelerations: the bias function's uncertainty.
+    decel_scatter : ndarray, shape (n,)
+        Test-to-test scatter std of the deceleration along the mean-function rollout (m/s^2; 0 for
+        ``band='latent'``, which does not need it).
+    velocity_lo, velocity_hi, displacement_lo, displacement_hi : ndarray, shape (n,)
+        2.5 and 97.5 percentiles over the samples (latent).
     mean_function_decel : ndarray, shape (n,)
         Deceleration of the deterministic rollout with the bias set to its GP mean (m/s^2).
     mean_path : Trajectory
@@ -73,12 +91,17 @@ class Prediction:
     n_samples : int
     condition : dict
         The condition predicted, SI.
+    band : str
+        Which band ``decel_lo/hi`` is: ``test`` or ``latent``.
     """
 
     time: np.ndarray
     decel: np.ndarray
     decel_lo: np.ndarray
     decel_hi: np.ndarray
+    decel_latent_lo: np.ndarray
+    decel_latent_hi: np.ndarray
+    decel_scatter: np.ndarray
     velocity: np.ndarray
     velocity_lo: np.ndarray
     velocity_hi: np.ndarray
@@ -92,16 +115,17 @@ class Prediction:
     extrapolation: dict
     n_samples: int
     condition: dict
+    band: str
 
     def frame(self) -> pd.DataFrame:
         """The CSV table in report units (g for decelerations; m/s and m as named).
 
         Returns
         -------
-        DataFrame, shape (n, 12)
+        DataFrame, shape (n, 14)
             ``time_s, decel_g, decel_lo_g, decel_hi_g, cae_decel_g, mean_function_decel_g,
             velocity_mps, velocity_lo_mps, velocity_hi_mps, displacement_m, displacement_lo_m,
-            displacement_hi_m``.
+            displacement_hi_m, decel_latent_lo_g, decel_latent_hi_g``.
         """
         return pd.DataFrame({
             "time_s": self.time,
@@ -111,6 +135,7 @@ class Prediction:
             "velocity_hi_mps": self.velocity_hi,
             "displacement_m": self.displacement, "displacement_lo_m": self.displacement_lo,
             "displacement_hi_m": self.displacement_hi,
+            "decel_latent_lo_g": self.decel_latent_lo / G0, "decel_latent_hi_g": self.decel_latent_hi / G0,
         })
 
 
@@ -200,7 +225,7 @@ def _sub(bias, x, v, mask):
 
 
 def predict(model, v0, front_weight, rear_weight, powertrain=None, drive=None, n_samples=1000,
-            random_state=None, duration=0.1, dt=8e-5) -> Prediction:
+            random_state=None, duration=0.1, dt=8e-5, band="test") -> Prediction:
     """Bias-corrected pulse with a Monte Carlo band at one condition.
 
     Parameters
@@ -218,6 +243,9 @@ def predict(model, v0, front_weight, rear_weight, powertrain=None, drive=None, n
         Seeds the draws.
     duration, dt : float
         Length and step of the rollout in s (default 100 ms at 12.5 kHz, the campaign's rate).
+    band : {"test", "latent"}
+        The reported deceleration band: where a new test is expected (latent band plus the
+        test-to-test scatter), or the bias function's uncertainty alone. Nothing else changes.
 
     Returns
     -------
@@ -233,12 +261,15 @@ def predict(model, v0, front_weight, rear_weight, powertrain=None, drive=None, n
     if not (np.isfinite(dt) and dt > 0 and np.isfinite(duration) and duration >= 16 * dt):
         raise InputError(f"expected dt > 0 and a duration of at least 16 steps, got dt={dt}, duration={duration}",
                          field="duration")
+    if band not in BANDS:
+        raise InputError(f"expected one of {BANDS}, got {band!r}", field="band")
     n_steps = int(round(duration / dt))
     rng = np.random.RandomState(random_state) if not isinstance(random_state, np.random.RandomState) \
         else random_state
     curve, draws, mean_traj, cae = _prepare(model, cond, n_samples, rng, dt, n_steps)
     mc = rollout(_decel_fn(curve, draws, model.relative), np.full(n_samples, cond.v0), dt, n_steps)
-    return _summarise(mc, mean_traj, cae, cond, model.extrapolation(cond, mean_traj))
+    scatter = decel_scatter(model, curve, mean_traj, cond) if band == "test" else np.zeros(mean_traj.time.size)
+    return _summarise(mc, mean_traj, cae, cond, model.extrapolation(cond, mean_traj), scatter, band)
 
 
 def _prepare(model, cond, n_samples: int, rng, dt: float, n_steps: int):
@@ -321,19 +352,53 @@ def _path_velocity(branch, path: Trajectory, x) -> np.ndarray:
     return np.interp(x, xb[keep], vb[keep])
 
 
-def _summarise(mc: Trajectory, mean_traj: Trajectory, cae: Trajectory, cond, flags) -> Prediction:
+def decel_scatter(model, curve, path: Trajectory, cond) -> np.ndarray:
+    """Test-to-test scatter std of the deceleration (m/s^2) along a one-sample rollout, shape (n,).
+
+    The bias model's :meth:`~crashfuse.bias.GMMGPBias.scatter_std` at the path's inputs, in
+    deceleration units (times :func:`crashfuse.projection.bias_scale` of the CAE deceleration
+    there for a relative target); 0 after separation and on a branch without a model.
+    """
+    out = np.zeros(path.time.size)
+    for branch, code in (("loading", Trajectory.LOADING), ("unloading", Trajectory.UNLOADING)):
+        est, on = model.bias_.get(branch), path.branch[0] == code
+        if est is None or not on.any():
+            continue
+        x = path.s[0, on] if branch == "loading" else path.s_max[0] - path.s[0, on]
+        sd = est.scatter_std(model.features(branch, x, path.v[0, on], cond))
+        if model.relative:
+            sd = sd * bias_scale(curve.loading(x) if branch == "loading" else curve.unloading(x))
+        out[on] = sd
+    return out
+
+
+def _test_band(mean, lo, hi, scatter):
+    """The latent band widened by the scatter std, in quadrature with each side's distance from the mean.
+
+    Never narrower than the latent band (min/max guard the rounding of sqrt(d^2) where the scatter is 0).
+    """
+    z = norm.ppf(BAND[1] / 100)
+    widen = (z * scatter) ** 2
+    return (np.minimum(lo, mean - np.sqrt(np.maximum(mean - lo, 0.0) ** 2 + widen)),
+            np.maximum(hi, mean + np.sqrt(np.maximum(hi - mean, 0.0) ** 2 + widen)))
+
+
+def _summarise(mc: Trajectory, mean_traj: Trajectory, cae: Trajectory, cond, flags, scatter, band) -> Prediction:
     lo, hi = BAND
     pct = {name: np.percentile(arr, [lo, hi], axis=0) for name, arr in
            (("decel", mc.decel), ("velocity", mc.v), ("displacement", mc.s))}
+    mean = mc.decel.mean(axis=0)
+    shown = _test_band(mean, *pct["decel"], scatter) if band == "test" else pct["decel"]
     return Prediction(
         time=mc.time,
-        decel=mc.decel.mean(axis=0), decel_lo=pct["decel"][0], decel_hi=pct["decel"][1],
+        decel=mean, decel_lo=shown[0], decel_hi=shown[1],
+        decel_latent_lo=pct["decel"][0], decel_latent_hi=pct["decel"][1], decel_scatter=scatter,
         velocity=mc.v.mean(axis=0), velocity_lo=pct["velocity"][0], velocity_hi=pct["velocity"][1],
         displacement=mc.s.mean(axis=0), displacement_lo=pct["displacement"][0],
         displacement_hi=pct["displacement"][1],
         mean_function_decel=mean_traj.decel[0], mean_path=mean_traj, cae_decel=cae.decel[0],
         metrics=_metric_bands(mc, mean_traj, cond.v0), extrapolation=flags,
-        n_samples=mc.s.shape[0], condition=dataclasses.asdict(cond),
+        n_samples=mc.s.shape[0], condition=dataclasses.asdict(cond), band=band,
     )
 
 

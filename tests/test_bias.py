@@ -411,3 +411,15 @@ def test_grouped_subset_is_even_within_groups_and_seed_free():
     assert np.bincount(a._g_hyp).tolist() == [10] * 5
     with pytest.raises(ValueError, match="groups"):
         KrigingGP().fit(X, y, groups[:-1])
+
+
+def test_scatter_of_a_model_fitted_before_it_existed_is_a_clear_error(two_regimes):
+    import copy
+
+    from crashfuse.errors import InputError
+    X, _, model = two_regimes
+    assert np.all(model.scatter_std(X[:3]) == 0.0)  # no groups: no scatter estimated
+    old = copy.deepcopy(model)
+    del old.gps_[0].scatter_var_
+    with pytest.raises(InputError, match="refit"):
+        old.scatter_std(X[:3])

@@ -123,6 +123,24 @@ def test_coverage_is_the_fraction_inside_the_band(campaign, result):
     row = cov[(cov.test_id == "T02") & (cov.model == "K1") & (cov.inputs == "paper")]
     assert row["coverage"].item() == pytest.approx(inside.mean(), abs=0.01)
     assert row["n_points"].item() == win.sum()
+    latent = ((test.decel[win] >= np.interp(test.time[win], frame.time_s, frame.decel_latent_lo_g * 9.80665) - 1e-3)
+              & (test.decel[win] <= np.interp(test.time[win], frame.time_s, frame.decel_latent_hi_g * 9.80665) + 1e-3))
+    assert row["coverage_latent"].item() == pytest.approx(latent.mean(), abs=0.01)
+    assert (cov["coverage"] >= cov["coverage_latent"]).all()  # the test band holds the latent one
+
+
+def test_the_band_setting_never_moves_the_scores(campaign, surrogate):
+    res, latent = (ev.evaluate(campaign, ks=[1], inputs=["state"], holdout="T05", n_samples=40, n_jobs=1,
+                               surrogate=surrogate, progress=None, band=band, **FAST) for band in ("test", "latent"))
+    key = ("state", "K1", "T05")
+    pd.testing.assert_frame_equal(latent.predictions[key].drop(columns=["decel_lo_g", "decel_hi_g"]),
+                                  res.predictions[key].drop(columns=["decel_lo_g", "decel_hi_g"]))
+    iso = res.iso_table
+    same = iso[(iso.test_id == "T05") & (iso.inputs == "state") & (iso.model == "K1")].reset_index(drop=True)
+    pd.testing.assert_frame_equal(latent.iso_table[latent.iso_table.model == "K1"].reset_index(drop=True), same)
+    row = latent.coverage.iloc[0]
+    assert row["coverage"] == row["coverage_latent"] == res.coverage.iloc[0]["coverage_latent"]
+    assert latent.records[key].settings["band"] == "latent" and res.records[key].settings["band"] == "test"
 
 
 def test_band_coverage_closed_form():

@@ -76,13 +76,17 @@ def test_true_bias_reproduces_the_test(campaign, surrogate):
 
 
 class KnownGP:
-    """A zero-mean GP on the branch coordinate: sigma^2 exp(-(x - x')^2 / (2 l^2)), exact draws."""
+    """A zero-mean GP on the branch coordinate: sigma^2 exp(-(x - x')^2 / (2 l^2)), exact draws,
+    and a constant test-to-test scatter std."""
 
-    def __init__(self, sigma, length):
-        self.sigma, self.length = sigma, length
+    def __init__(self, sigma, length, scatter=0.0):
+        self.sigma, self.length, self.scatter = sigma, length, scatter
 
     def predict(self, X):
         return np.zeros(len(X))
+
+    def scatter_std(self, X):
+        return np.full(len(X), self.scatter)
 
     def std(self, x):
         return np.full(np.shape(x), self.sigma)
@@ -104,6 +108,60 @@ def test_band_width_matches_a_known_gp(campaign, model):
     half = 0.5 * (pred.decel_hi - pred.decel_lo)[early]
     np.testing.assert_allclose(half, 1.959964 * sigma, rtol=0.07)
     np.testing.assert_allclose(pred.decel[early], pred.cae_decel[early], atol=0.1 * sigma)
+
+
+def test_test_band_adds_the_scatter_in_quadrature_and_leaves_the_rest(campaign, model):
+    sigma, scatter = 2.0 * G, 1.5 * G
+    known = dataclasses.replace(model, bias_={"loading": KnownGP(sigma, 0.05, scatter), "unloading": None},
+                                settings={**model.settings, "use_companion": True})
+    test, latent = (_at(known, campaign.pulses["T08"], n_samples=4000, random_state=3, band=b)
+                    for b in ("test", "latent"))
+    for name in ("decel", "decel_latent_lo", "decel_latent_hi", "velocity_lo", "displacement_hi",
+                 "mean_function_decel"):
+        np.testing.assert_array_equal(getattr(test, name), getattr(latent, name))
+    np.testing.assert_array_equal(latent.decel_lo, latent.decel_latent_lo)
+    assert test.band == "test" and latent.band == "latent"
+    early = (test.time >= 0.001) & (test.time <= 0.005)
+    half = 0.5 * (test.decel_hi - test.decel_lo)[early]
+    np.testing.assert_allclose(half, 1.959964 * np.hypot(sigma, scatter), rtol=0.07)
+    contact = test.mean_path.branch[0] == Trajectory.LOADING
+    np.testing.assert_allclose(test.decel_scatter[contact], scatter)  # absolute target: bias units are m/s^2
+    assert np.all(test.decel_scatter[~contact] == 0)  # no loading model after max crush here
+    assert np.all(test.decel_lo <= latent.decel_lo) and np.all(test.decel_hi >= latent.decel_hi)
+    frame = test.frame()
+    np.testing.assert_allclose(frame["decel_latent_hi_g"], test.decel_latent_hi / G)
+    with pytest.raises(InputError) as err:
+        _at(known, campaign.pulses["T08"], n_samples=5, band="noisy")
+    assert err.value.field == "band"
+
+
+def test_relative_scatter_scales_with_the_floored_cae_decel(campaign, model):
+    from crashfuse.projection import bias_scale
+    rel = dataclasses.replace(model, bias_={"loading": KnownGP(1e-3, 0.05, 0.1), "unloading": None},
+                              settings={**model.settings, "target": "relative"})
+    pred = _at(rel, campaign.pulses["T06"], n_samples=5, random_state=0)
+    on = pred.mean_path.branch[0] == Trajectory.LOADING
+    s = pred.mean_path.s[0, on]
+    cond = rel.condition(**pred.condition)
+    np.testing.assert_allclose(pred.decel_scatter[on], 0.1 * bias_scale(rel.cae_curve(cond).loading(s)), rtol=1e-3)
+
+
+def test_fitted_scatter_recovers_offsets_between_replicates():
+    # Replicate tests of one condition: a shared smooth bias plus a constant offset per test,
+    # which no input explains. The latent band narrows with more replicates; the scatter must not.
+    from crashfuse.bias import GMMGPBias
+    rng = np.random.RandomState(0)
+    tau, n_tests, n = 0.5, 12, 40
+    x = np.tile(np.linspace(0, 1, n), n_tests)
+    groups = np.repeat(np.arange(n_tests), n)
+    y = np.sin(3 * x) + np.repeat(tau * rng.standard_normal(n_tests), n)
+    est = GMMGPBias(n_clusters=1, n_restarts=0, random_state=0).fit(x[:, None], y, groups)
+    latent = est.predict(x[:n, None], return_std=True)[1]
+    scatter = est.scatter_std(x[:n, None])
+    assert np.all(latent < 0.5 * tau) and 0.5 * tau < scatter[0] < 2.5 * tau
+    assert np.all(scatter == scatter[0])
+    plain = GMMGPBias(n_clusters=1, n_restarts=0, random_state=0).fit(x[:, None], y)  # no groups: no scatter
+    assert np.all(plain.scatter_std(x[:n, None]) == 0)
 
 
 def test_extrapolation_is_flagged_and_widens_the_band(campaign, model):
