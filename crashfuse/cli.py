@@ -176,8 +176,8 @@ def _diagnose(args) -> int:
     if surrogate is not None:
         surrogate.check_campaign(campaign, args.surrogate)
     diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, min_wins=args.min_wins, k=args.k,
-                    inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate, in_sample=args.in_sample,
-                    residual_model=not args.no_residual)
+                    inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
+                    in_sample=args.in_sample, residual_model=not args.no_residual)
     out = write_diagnosis(diag, args.out, campaign)
     print(f"verdict: {', '.join(diag.verdict) or 'none'} -> {out / 'diagnosis.md'}")
     return 0
