@@ -150,6 +150,10 @@ class Plant:
         rest = _take(self.a_rest, i, w)
         return np.maximum(rest + _take(self.dadv, i, w) * v, 0.0), np.maximum(rest, 0.0)
 
+    def at_rest(self, s: np.ndarray) -> np.ndarray:
+        """CAE loading deceleration (m/s^2) at crush ``s`` (m) and zero crush speed, shape (n,), >= 0."""
+        return np.maximum(_take(self.a_rest, *_cell(s / self.s_step, self.a_rest.shape[1])), 0.0)
+
     def unloading(self, u: np.ndarray) -> np.ndarray:
         """CAE unloading deceleration (m/s^2) of every sample at its own ``u`` (m), shape (n,)."""
         return _take(self.a_unload, *_cell(u / self.u_step, self.a_unload.shape[1]))
@@ -286,7 +290,7 @@ def decel_fn(plant: Plant, effects, theta: dict):
 
     def decel(st: State) -> np.ndarray:
         load = st.loading
-        f_max = plant.mass * plant.loading(st.s_max, 0.0)[1]  # static crush force at maximum crush (N)
+        f_max = plant.mass * plant.at_rest(st.s_max)  # static crush force at maximum crush (N)
         ratio = np.maximum(f_max / (plant.mass * unl0), 1e-6)
         a_crush, a_rest = plant.loading(st.s, st.v)
         force = np.where(load, plant.mass * a_crush, f_max * plant.unloading(st.u / ratio) / unl0)
