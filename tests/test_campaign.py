@@ -510,3 +510,14 @@ def test_in_memory_campaign_obeys_the_file_rules():
     frame = Campaign.from_pulses([make_pulse("A", "cae")]).conditions
     with pytest.raises(InputError, match="one pulse per run_id"):
         Campaign(frame, {})
+
+
+def test_plain_and_general_pulse_readers_agree(tmp_path):
+    """A plain file takes numpy's fast path; the same numbers quoted, padded and with an extra
+    column take pandas' path. Both give bit-identical SI arrays."""
+    plain, fancy = tmp_path / "plain.csv", tmp_path / "fancy.csv"
+    plain.write_text(pulse_text(T, GOOD_G))
+    fancy.write_text("note, time_s, decel_g\n" + "".join(f'"x", "{float(x)!r}", {float(y)!r}\n' for x, y in zip(T, GOOD_G)))
+    assert cmod._plain_pulse_csv(plain) is not None and cmod._plain_pulse_csv(fancy) is None
+    for got, want in zip(read_pulse_csv(plain), read_pulse_csv(fancy)):
+        np.testing.assert_array_equal(got, want)
