@@ -31,6 +31,11 @@ _CHUNK = 2048  # prediction points per block: bounds the (n_train, chunk) work a
 _JITTERS = 10.0 ** np.arange(-12, -3)  # relative jitters tried, in order, for joint draws
 _SEED_MAX = 2**31 - 1
 _FAILED = 1e300  # objective value where K is not numerically positive definite
+# The scatter refits (one per left-out test) stop at a relative likelihood change of 1e-6, not
+# scipy's 2e-9: they only size the test band. 66-fold evaluate 352 -> 327 s, scores identical,
+# coverage within 0.004. The main fit keeps the default: 1e-5 there flipped fold T04 of state K3
+# between local optima (ISO 0.77 -> 0.24).
+_SCATTER_LBFGS = {"ftol": 1e-6}
 _Z95 = 1.959963984540054  # two-sided 95 % normal quantile
 THETA_MAX_CANDIDATES = (1.0, 10.0, 100.0, 1000.0)  # theta upper bounds GMMGPBias chooses from by grouped CV
 
@@ -288,7 +293,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         for grp in np.unique(groups):
             inner, keep = copy.copy(self), self._g_hyp != grp  # shares settings, scaler and trend columns
             inner._Z_hyp, inner._u_hyp, inner._g_hyp = self._Z_hyp[keep], self._u_hyp[keep], self._g_hyp[keep]
-            e = minimize(inner._objective, eta, jac=True, method="L-BFGS-B", bounds=bounds).x
+            e = minimize(inner._objective, eta, jac=True, method="L-BFGS-B", bounds=bounds, options=_SCATTER_LBFGS).x
             inner.theta_, inner.nugget_ = np.exp(e[:-1]), float(np.exp(e[-1]))
             try:
                 inner._condition(Z[groups != grp], u[groups != grp])
