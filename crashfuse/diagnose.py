@@ -66,9 +66,10 @@ class Candidate:
 
     @property
     def at_upper_bound(self) -> list:
-        """Own parameters at their upper bound in the all-tests fit: the law needed more than is physical."""
+        """Own parameters at an upper bound that is a physical limit, in the all-tests fit: the law
+        needed more than is physical."""
         return [p.name for p, v in zip(self.fits.params, self.fits.theta[-1])
-                if p.name.startswith(self.effect + ".") and np.isclose(v, p.upper, rtol=1e-3)]
+                if p.name.startswith(self.effect + ".") and p.upper_is_limit and np.isclose(v, p.upper, rtol=1e-3)]
 
 
 @dataclasses.dataclass
@@ -280,10 +281,12 @@ def _effects_campaign(campaign: Campaign, case: TestCase, fits: FoldFits, fold: 
 
 def _candidate_json(c: Candidate, case: TestCase) -> dict:
     all_fit = c.fits.theta[-1]
-    folds = c.fits.theta[:-1]
-    n = folds.shape[0]
-    se = np.sqrt((n - 1) / n * ((folds - folds.mean(axis=0)) ** 2).sum(axis=0)) if n > 1 else np.full(all_fit.size,
-                                                                                                        np.nan)
+    def own(theta):
+        return {p.name: v for p, v in zip(c.fits.params, theta) if p.name.startswith(c.effect + ".")}
+
+    se = _jackknife_se(c.fits.theta[:-1])
+    head = headline(c.effect, own(all_fit))
+    head_se = _jackknife_se(np.array([list(headline(c.effect, own(t)).values()) for t in c.fits.theta[:-1]]))
     # A value at a bound means the law could not fit within physical limits: read it with care.
     # A value still exactly at a starting point never moved: no test is sensitive to it (e.g. a
     # powertrain gap that no test of that label reaches) - not identified.
@@ -291,16 +294,23 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
                        "at_bound": bool(np.isclose(v, p.lower, rtol=1e-3) or np.isclose(v, p.upper, rtol=1e-3)),
                        "identified": not any(np.isclose(v, x, rtol=1e-9) for x in p.start)}
               for p, v, s in zip(c.fits.params, all_fit, se)}
-    own = {k: v["value"] for k, v in params.items() if k.startswith(c.effect + ".")}
     return {
         "effect": c.effect, "chosen": c.chosen, "params": params,
-        "headline": headline(c.effect, own),
+        "headline": head, "headline_se": {k: _num(x) for k, x in zip(head, head_se)},
         "evidence": {"round": c.round, "heldout_mse_ratio": c.ratio, "folds_better": c.wins,
                      "at_upper_bound": c.at_upper_bound,
                      "n_folds": int(c.heldout_mse.size), "heldout_rms_g": _rms_g(c.heldout_mse),
                      "reference_rms_g": _rms_g(c.reference_mse), "fitted_with": list(c.fits.effects)},
-        "reading": reading(c.effect, own, case),
+        "reading": reading(c.effect, own(all_fit), case),
     }
+
+
+def _jackknife_se(folds: np.ndarray) -> np.ndarray:
+    """Jackknife standard error of each column over the leave-one-test-out fits, shape (n_folds, m) -> (m,)."""
+    n = folds.shape[0]
+    if n < 2:
+        return np.full(folds.shape[1], np.nan)
+    return np.sqrt((n - 1) / n * ((folds - folds.mean(axis=0)) ** 2).sum(axis=0))
 
 
 def _num(x):
@@ -367,7 +377,9 @@ def markdown(js: dict) -> str:
               "|---|---|---|---|---|---|---|"]
     for e in js["effects"]:
         ev = e["evidence"]
-        head = ", ".join(f"{k} = {v:.4g}" for k, v in e["headline"].items())
+        se = e["headline_se"]
+        head = ", ".join(f"{k} = {v:.4g}" + ("" if se[k] is None else f" (se {se[k]:.2g})")
+                         for k, v in e["headline"].items())
         lines.append(f"| {e['effect']} | {'yes' if e['chosen'] else 'no'} | {ev['round']} | "
                      f"{ev['heldout_mse_ratio']:.3f} | {ev['folds_better']}/{ev['n_folds']} | {head} | {e['reading']} |")
     lines += ["", "Fitted parameters (all tests; jackknife standard error over the folds):", ""]

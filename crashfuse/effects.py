@@ -75,6 +75,10 @@ class Param:
         Physical bounds (> 0; fitted in log space).
     start : tuple of float
         Starting points of the fit (multi-start).
+    upper_is_limit : bool
+        A fit at ``upper`` needs more of the effect than is physical (an extra mass above half
+        the car), so the law cannot explain the gap. False where ``upper`` only closes the search
+        box on the weak side (the rate reference ``d``: a larger ``d`` hardens less).
     """
 
     name: str
@@ -82,6 +86,7 @@ class Param:
     lower: float
     upper: float
     start: tuple
+    upper_is_limit: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,7 +252,7 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
     if effect == "damping":
         return (Param("damping.c", "N s/m", 10.0, 1e5, (1e3, 1e4)),)
     if effect == "strain_rate":
-        return (Param("strain_rate.d", "m/s", 1e-2, 1e8, (1e2, 1e4)),
+        return (Param("strain_rate.d", "m/s", 1e-2, 1e8, (1e2, 1e4), upper_is_limit=False),
                 Param("strain_rate.q", "-", 1.0, 12.0, (3.0, 6.0)))
     if effect == "unloading":
         return (Param("unloading.k", "N/m", 1e5, 1e10, (1e7, 1e8)),

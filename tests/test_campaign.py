@@ -517,7 +517,8 @@ def test_plain_and_general_pulse_readers_agree(tmp_path):
     column take pandas' path. Both give bit-identical SI arrays."""
     plain, fancy = tmp_path / "plain.csv", tmp_path / "fancy.csv"
     plain.write_text(pulse_text(T, GOOD_G))
-    fancy.write_text("note, time_s, decel_g\n" + "".join(f'"x", "{float(x)!r}", {float(y)!r}\n' for x, y in zip(T, GOOD_G)))
+    rows = "".join(f'"x", "{float(x)!r}", {float(y)!r}\n' for x, y in zip(T, GOOD_G))
+    fancy.write_text("note, time_s, decel_g\n" + rows)
     assert cmod._plain_pulse_csv(plain) is not None and cmod._plain_pulse_csv(fancy) is None
     for got, want in zip(read_pulse_csv(plain), read_pulse_csv(fancy)):
         np.testing.assert_array_equal(got, want)

@@ -119,9 +119,11 @@ def test_withheld_damping_is_found_and_recovered(damping_world):
     diag = diagnose(campaign, effects=("mass", "damping"), residual_model=False, regions=False, progress=None)
     assert diag.verdict == ["damping"]
     js = diag.to_json()
-    fitted = next(e for e in js["effects"] if e["effect"] == "damping")["headline"]["damping.c"]
+    damping = next(e for e in js["effects"] if e["effect"] == "damping")
+    fitted, se = damping["headline"]["damping.c"], damping["headline_se"]["damping.c"]
     true = true_headline(world, "damping", campaign)["damping.c"]
     assert abs(fitted - true) / true < 0.25
+    assert 0 < se < 0.25 * fitted  # the jackknife over folds: tests agree on the damping
     assert js["shrink"]["CAE+effects"]["0-60"] > js["shrink"]["CAE"]["0-60"]
 
 
@@ -177,6 +179,7 @@ def test_small_validation_matrix(tmp_path):
     assert table["first_correct"].all() and (table["spurious"].fillna("") == "").all()
     damping = table.iloc[0]
     assert damping["within_tolerance"] and damping["shrinks"] and damping["heldout_mse_ratio"] < 0.5
+    assert 0 < damping["fitted_se"] < damping["fitted"] and np.isnan(table.iloc[1]["fitted_se"])
     assert (tmp_path / "validation.md").read_text().count("| damping |") >= 1
 
 
@@ -198,6 +201,17 @@ def test_a_law_at_its_upper_bound_is_flagged(case):
     assert Candidate("mass", 1, at_bound, np.ones(2), np.ones(2)).at_upper_bound == ["mass.extra"]
     inside = ef.FoldFits(("mass",), params, np.array([[upper], [0.5 * upper]]), np.zeros(2))
     assert Candidate("mass", 1, inside, np.ones(2), np.ones(2)).at_upper_bound == []  # the all-tests row decides
+
+
+def test_the_weak_end_of_the_search_box_is_not_a_physical_limit(case):
+    """A large rate reference d means little hardening: a subtle rate effect may fit there (q inside)."""
+    from crashfuse.diagnose import Candidate
+    params = ef.effect_params(case, ("strain_rate",))
+    d, q = params
+    weak = ef.FoldFits(("strain_rate",), params, np.array([[d.upper, 6.0]] * 2), np.zeros(2))
+    assert Candidate("strain_rate", 1, weak, np.ones(2), np.ones(2)).at_upper_bound == []
+    flat = ef.FoldFits(("strain_rate",), params, np.array([[1e4, q.upper]] * 2), np.zeros(2))
+    assert Candidate("strain_rate", 1, flat, np.ones(2), np.ones(2)).at_upper_bound == ["strain_rate.q"]
 
 
 def test_a_parameter_that_never_left_its_start_is_not_identified(case):

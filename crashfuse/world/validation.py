@@ -28,8 +28,8 @@ from crashfuse.world.presets import resolve
 TOLERANCE = {"realistic": 0.25, "subtle": 0.50}  # relative error allowed on the headline parameter
 N_CAE = 60  # the CAE surrogate behind the CAE model's speed sensitivity needs a few dozen runs besides the companions
 COLUMNS = ("withheld", "strength", "seed", "verdict", "first", "first_correct", "spurious", "parameter", "true",
-           "fitted", "rel_error", "within_tolerance", "heldout_mse_ratio", "iso_0_60_cae", "iso_0_60_effects",
-           "shrinks", "seconds")
+           "fitted", "fitted_se", "rel_error", "within_tolerance", "heldout_mse_ratio", "iso_0_60_cae",
+           "iso_0_60_effects", "shrinks", "seconds")
 
 
 def true_headline(world: dict, effect: str, campaign) -> dict:
@@ -79,12 +79,15 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
     base["heldout_mse_ratio"] = float(np.prod([diag.candidates[e].ratio for e in diag.verdict]))
     base["shrinks"] = bool(base["iso_0_60_effects"] > base["iso_0_60_cae"]) if expected else None
     if not expected:
-        return [dict(base, parameter="", true=np.nan, fitted=np.nan, rel_error=np.nan, within_tolerance=None)]
-    fitted = next(e["headline"] for e in js["effects"] if e["effect"] == withheld)
+        return [dict(base, parameter="", true=np.nan, fitted=np.nan, fitted_se=np.nan, rel_error=np.nan,
+                     within_tolerance=None)]
+    effect = next(e for e in js["effects"] if e["effect"] == withheld)
+    fitted, se = effect["headline"], effect["headline_se"]
     rows = []
     for name, true in true_headline(world, withheld, campaign).items():
         err = abs(fitted[name] - true) / abs(true)
-        rows.append(dict(base, parameter=name, true=true, fitted=fitted[name], rel_error=err,
+        rows.append(dict(base, parameter=name, true=true, fitted=fitted[name],
+                         fitted_se=np.nan if se[name] is None else se[name], rel_error=err,
                          within_tolerance=bool(err <= TOLERANCE[strength])))
     return rows
 
@@ -121,10 +124,10 @@ def validation_markdown(table: pd.DataFrame) -> str:
                             table.drop_duplicates(["withheld", "strength", "seed"])["first"])
     lines = ["# Withheld-effect validation", "", "Rows: effect withheld from the CAE; columns: first effect chosen.",
              "", confusion.to_markdown() if hasattr(confusion, "to_markdown") else confusion.to_string(), "",
-             "| withheld | strength | seed | verdict | parameter | true | fitted | error | ok | held-out MSE ratio | "
-             "ISO 0-60 CAE -> +effects |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| withheld | strength | seed | verdict | parameter | true | fitted (jackknife se) | error | ok | "
+             "held-out MSE ratio | ISO 0-60 CAE -> +effects |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in table.itertuples():
         lines.append(f"| {r.withheld} | {r.strength} | {r.seed} | {r.verdict} | {r.parameter} | {r.true:.4g} | "
-                     f"{r.fitted:.4g} | {r.rel_error:.2f} | {r.within_tolerance} | {r.heldout_mse_ratio:.3f} | "
-                     f"{r.iso_0_60_cae:.3f} -> {r.iso_0_60_effects:.3f} |")
+                     f"{r.fitted:.4g} ({r.fitted_se:.2g}) | {r.rel_error:.2f} | {r.within_tolerance} | "
+                     f"{r.heldout_mse_ratio:.3f} | {r.iso_0_60_cae:.3f} -> {r.iso_0_60_effects:.3f} |")
     return "\n".join(lines) + "\n"
