@@ -14,10 +14,11 @@ within their physical bounds.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
-from crashfuse.effects import Plant, Param, curve_plant, parameters, simulate
+from crashfuse.effects import Plant, Param, crush_force_rate, curve_plant, parameters, simulate
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
 from crashfuse.projection import cae_curve
@@ -29,8 +30,8 @@ FD_STEP = 1e-3  # finite-difference step in log-parameter space
 MAX_ITER = 30
 RTOL = 1e-5  # a set has converged when an accepted step lowers its cost by less than this fraction
 S_HI_FACTOR = 1.6  # CAE tables reach this factor beyond the longest CAE/test crush
-RATE_SPEEDS = (0.8, 1.0, 1.2)  # impact speeds (x v0) of the surrogate curves giving the CAE's da/dv
-MIN_CAE_SPEEDS = 3  # distinct CAE impact speeds needed before the surrogate is asked for da/dv
+FASTER = 1.2  # impact speed (x v0) of the surrogate curve a rollout meets beyond its CAE run's crush
+MIN_CAE_SPEEDS = 3  # distinct CAE impact speeds needed before the CAE force's rate sensitivity is estimated
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,10 +74,11 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
 
     The CAE surrogate is fitted (on the CAE runs only) when a test names no companion run or its
     companion never reaches zero velocity (the unloading branch then comes from the surrogate), and
-    for ``rate_aware``: the CAE model's sensitivity to crush speed (:func:`crashfuse.effects.
-    rate_sensitivity`) from the surrogate's curves at :data:`RATE_SPEEDS` times each test's impact
-    speed. It needs CAE runs at :data:`MIN_CAE_SPEEDS` distinct impact speeds; with fewer the CAE
-    force depends on crush only (``TestCase.rate_aware`` False).
+    for ``rate_aware``: the CAE force then follows the rollout's crush speed with the sensitivity
+    the CAE runs show (:func:`crashfuse.effects.crush_force_rate`), and beyond a test's CAE run's
+    maximum crush the reference is the surrogate's curve at :data:`FASTER` times its impact speed.
+    It needs CAE runs at :data:`MIN_CAE_SPEEDS` distinct impact speeds; with fewer the CAE force
+    depends on crush only (``TestCase.rate_aware`` False).
 
     Raises
     ------
@@ -103,25 +105,20 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
     mask = np.array([time <= p.time[-1] + 1e-12 for p in pulses])
     s_hi = S_HI_FACTOR * max(max(c.s[-1], c.s_max) for c in curves)
     labels = [_label(campaign, t) for t in campaign.tests]
-    neighbours = [_neighbours(surrogate, p) for p in pulses] if rate_aware else None
-    plant = curve_plant(curves, [p.mass for p in pulses], labels, s_hi, neighbours)
+    faster = [_faster(surrogate, p) for p in pulses] if rate_aware else None
+    force_rate = functools.partial(crush_force_rate, [campaign.pulses[r] for r in campaign.cae]) if rate_aware else None
+    plant = curve_plant(curves, [p.mass for p in pulses], labels, s_hi, faster, force_rate)
     return TestCase(list(campaign.tests), plant, target, mask, time, sources, rate_aware)
 
 
-def _neighbours(surrogate: CAESurrogate, test) -> list:
-    """The surrogate's CAE curves of a test's vehicle at :data:`RATE_SPEEDS` times its impact speed.
-
-    A speed whose predicted curve cannot absorb the impact energy (far outside the CAE runs) is
-    left out; with fewer than two curves left the test's CAE force depends on crush only.
-    """
-    curves = []
-    for f in RATE_SPEEDS:
-        try:
-            curves.append(surrogate.curve(f * test.v0, test.front_weight, test.rear_weight,
-                                          test.meta.get("powertrain"), test.meta.get("drive")))
-        except InputError:
-            continue
-    return curves if len(curves) >= 2 else []
+def _faster(surrogate: CAESurrogate, test):
+    """The surrogate's CAE curve of a test's vehicle at :data:`FASTER` times its impact speed, or None
+    where it cannot absorb that impact energy (far outside the CAE runs)."""
+    try:
+        return surrogate.curve(FASTER * test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
+                               test.meta.get("drive"))
+    except InputError:
+        return None
 
 
 def _label(campaign: Campaign, test_id: str) -> str:

@@ -18,8 +18,8 @@ unloading coordinate ``u = s_max - s``::
   spring-back both scale with the peak force, as for a linear elastic unloading.
 * ``a_CAE(s, v) = a_CAE(s) + (da/dv)(s) (v - v_CAE(s))``: the CAE run's own deceleration along its
   own trajectory ``v_CAE(s)``, moved to the rollout's velocity with the CAE model's sensitivity to
-  crush speed at fixed crush (:func:`rate_sensitivity`, from CAE curves at neighbouring impact
-  speeds; 0 when none are given). A CAE model with rate effects of its own (material rate
+  crush speed at fixed crush at that speed (:func:`crush_force_rate`, a regression over all CAE
+  runs; 0 when none are given). A CAE model with rate effects of its own (material rate
   hardening, damping) then responds to an effect that changes the velocity - an extra mass
   arrives faster at every crush - instead of replaying its force-crush curve. ``F_crush >= 0``.
 * ``F_extra`` collects added forces (0 for the CAE model); ``M_eff`` starts at ``M``.
@@ -53,6 +53,7 @@ import dataclasses
 
 import numpy as np
 
+from crashfuse.domain import displacement_branches
 from crashfuse.dynamics import State, Trajectory, rollout
 from crashfuse.errors import InputError
 
@@ -60,6 +61,7 @@ EFFECTS = ("damping", "strain_rate", "powertrain", "unloading", "mass")
 MOUNT_YIELD_TRAVEL = 0.01  # m: powertrain mounts yield after 1 cm of relative travel (k_m = f_mount / 1 cm)
 V_REF = 15.0  # m/s: reference crush speed of the strain-rate headline (about 34 mph)
 F_REF = 5e5  # N: reference peak force of the unloading headline (about 30 g on a 1700 kg car)
+RUNS_PER_COEF = 3  # moving CAE runs per regression coefficient before a crush's force-speed fit is used
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,21 +127,27 @@ class Plant:
     labels: tuple
 
     @classmethod
-    def from_curves(cls, curves, mass, group, labels, s_hi: float, neighbours=None, n_s: int = 2048,
-                    n_u: int = 512) -> "Plant":
+    def from_curves(cls, curves, mass, group, labels, s_hi: float, faster=None, force_rate=None,
+                    n_s: int = 2048, n_u: int = 512) -> "Plant":
         """Tabulate CAE curves (:class:`crashfuse.surrogate.CAECurve`) up to crush ``s_hi`` (m).
 
-        ``neighbours``, if given, holds per curve the CAE curves of the same vehicle at a few other
-        impact speeds (:func:`rate_sensitivity`); without it the CAE force depends on crush only.
+        ``faster``, if given, holds per curve a CAE curve of the same vehicle at a higher impact
+        speed (or None): the reference beyond the curve's maximum crush (:func:`_reference`).
+        ``force_rate``, if given, gives the CAE model's crush force as a quadratic in crush speed
+        at fixed crush (:func:`crush_force_rate`: a callable from the crush grid in m to its two
+        coefficients); each condition's ``da/dv`` is its slope at the reference trajectory's own
+        speed over the nominal mass. Without it the CAE force depends on crush only.
         """
         s = np.linspace(0.0, s_hi, n_s)
         u_hi = max(c.u_end for c in curves) * 1.05
         u = np.linspace(0.0, u_hi, n_u)
-        neighbours = [()] * len(curves) if neighbours is None else neighbours
-        a, v = (np.array(x) for x in zip(*(_reference(c, nb, s) for c, nb in zip(curves, neighbours))))
-        dadv = np.array([rate_sensitivity(nb, s) if nb else np.zeros(n_s) for nb in neighbours])
+        mass = np.asarray(mass, float)
+        faster = [None] * len(curves) if faster is None else faster
+        a, v = (np.array(x) for x in zip(*(_reference(c, f, s) for c, f in zip(curves, faster))))
+        b1, b2 = (0.0, 0.0) if force_rate is None else force_rate(s)
+        dadv = (b1 + 2.0 * b2 * v) / mass[:, None] + np.zeros_like(a)
         return cls(s[1], u[1], a - dadv * v, dadv, np.array([c.unloading(u) for c in curves]),
-                   np.asarray(mass, float), np.array([c.v0 for c in curves]), np.asarray(group, int), tuple(labels))
+                   mass, np.array([c.v0 for c in curves]), np.asarray(group, int), tuple(labels))
 
     def subset(self, rows) -> "Plant":
         """The plant of the conditions ``rows`` (in that order, repeats allowed)."""
@@ -164,19 +172,18 @@ class Plant:
         return _take(self.a_unload, *_cell(u / self.u_step, self.a_unload.shape[1]))
 
 
-def _reference(curve, neighbours, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _reference(curve, faster, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Loading deceleration (m/s^2) and velocity (m/s) of the reference trajectory on ``s`` (m).
 
-    The CAE run's own until it stops; beyond, the fastest neighbour's while that still moves - a
-    rollout that crushes further than the CAE run meets the structure the faster CAE run crushed,
-    not the run's last stiffness continued.
+    The CAE run's own until it stops; beyond, the ``faster`` curve's (if given) while that still
+    moves - a rollout that crushes further than the CAE run meets the structure a faster CAE run
+    crushed, not the run's last stiffness continued.
     """
     a, v = curve.loading(s), crush_speed(curve, s)
-    if neighbours:
-        fast = max(neighbours, key=lambda c: c.v0)
+    if faster is not None:
         beyond = (v == 0.0) & (s > curve.s_max)
-        a = np.where(beyond, fast.loading(s), a)
-        v = np.where(beyond, crush_speed(fast, s), v)
+        a = np.where(beyond, faster.loading(s), a)
+        v = np.where(beyond, crush_speed(faster, s), v)
     return a, v
 
 
@@ -191,35 +198,54 @@ def crush_speed(curve, s: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(v2, 0.0)) * (np.minimum.accumulate(v2) > 0.0)
 
 
-def rate_sensitivity(curves, s: np.ndarray) -> np.ndarray:
-    """The CAE model's ``da/dv`` at fixed crush ``s`` (m) from its curves at several impact speeds.
+def crush_force_rate(runs, s: np.ndarray) -> np.ndarray:
+    """The CAE model's crush force as a function of crush speed at fixed crush, from its own runs.
 
-    Two curves of one vehicle at impact speeds ``v1 < v2`` reach crush ``s`` at speeds
-    ``v_1(s) < v_2(s)``; ``(a_2(s) - a_1(s)) / (v_2(s) - v_1(s))`` is the secant sensitivity while the
-    slower one still moves. Adjacent pairs are averaged where valid; beyond the last valid crush the
-    last value is held.
+    At each crush ``s`` every run still moving there gives its force ``F_j = M_j a_j(s)`` and its
+    crush speed ``v_j(s)`` (its own kinematics). The least-squares fit
+    ``F_j = alpha_c + beta_f (front_j - mean) + beta_r (rear_j - mean) + b1(s) v_j + b2(s) v_j^2``
+    (one intercept per powertrain/drive configuration, whose packages stack up at different
+    crush; the axle masses carry the strength's scaling with the vehicle) separates the speed
+    effect from the vehicle's, because a CAE design varies the impact speed independently of the
+    vehicle. Every run enters, so the slope is far less noisy than differences of surrogate
+    curves; the quadratic term lets the sensitivity change with speed (material rate hardening
+    is steepest at low rates), so each condition gets the slope at its own crush speed,
+    ``dF/dv = b1 + 2 b2 v``. Where fewer than :data:`RUNS_PER_COEF` runs per coefficient still
+    move (deep crush, reached by fast runs only), the last supported values are held.
 
     Parameters
     ----------
-    curves : sequence of CAECurve
-        At least two, of one vehicle, at distinct impact speeds.
+    runs : sequence of Pulse
+        CAE runs (decel in m/s^2, ``meta['powertrain']``, ``meta['drive']`` where known).
     s : ndarray, shape (n_s,)
         Increasing crush grid in m.
 
     Returns
     -------
-    ndarray, shape (n_s,)
-        In 1/s ((m/s^2) per (m/s)).
+    ndarray, shape (2, n_s)
+        ``b1`` in N s/m and ``b2`` in N s^2/m^2 (0 where no crush is supported).
     """
-    curves = sorted(curves, key=lambda c: c.v0)
-    a = np.array([c.loading(s) for c in curves])
-    v = np.array([crush_speed(c, s) for c in curves])
-    valid = v[:-1] > 0.0
-    slope = np.where(valid, np.diff(a, axis=0) / np.where(valid, np.diff(v, axis=0), 1.0), 0.0)
-    count = valid.sum(axis=0)
-    mean = slope.sum(axis=0) / np.maximum(count, 1)
-    last = np.maximum.accumulate(np.where(count > 0, np.arange(s.size), 0))  # hold the last valid value
-    return mean[last]
+    force, speed = np.full((len(runs), s.size), np.nan), np.full((len(runs), s.size), np.nan)
+    for j, run in enumerate(runs):
+        load = displacement_branches(run).loading
+        inside = s <= load.x[-1]
+        force[j, inside] = run.mass * np.interp(s[inside], load.x, load.decel)
+        speed[j, inside] = np.interp(s[inside], load.x, load.velocity)
+    config = [(r.meta.get("powertrain"), r.meta.get("drive")) for r in runs]
+    dummies = np.array([[c == k for k in dict.fromkeys(config)] for c in config], float)
+    axles = np.array([[r.front_weight, r.rear_weight] for r in runs])
+    design = np.hstack([dummies, axles - axles.mean(axis=0)])
+    out = np.full((2, s.size), np.nan)
+    for i in range(s.size):
+        moving = np.isfinite(force[:, i]) & (speed[:, i] > 0.0)
+        if moving.sum() >= RUNS_PER_COEF * (design.shape[1] + 2):
+            x = np.column_stack([design[moving], speed[moving, i], speed[moving, i] ** 2])
+            out[:, i] = np.linalg.lstsq(x, force[moving, i], rcond=None)[0][-2:]
+    supported = np.isfinite(out[0])
+    if not supported.any():
+        return np.zeros((2, s.size))
+    last = np.maximum.accumulate(np.where(supported, np.arange(s.size), np.flatnonzero(supported)[0]))
+    return out[:, last]
 
 
 def _cell(pos: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -339,12 +365,12 @@ def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Tra
     return rollout(decel_fn(plant, effects, theta), plant.v0, dt, n_steps)
 
 
-def curve_plant(curves, masses, labels_of, s_hi: float, neighbours=None) -> Plant:
+def curve_plant(curves, masses, labels_of, s_hi: float, faster=None, force_rate=None) -> Plant:
     """A :class:`Plant` from CAE curves, nominal masses (kg), each curve's powertrain label and,
-    optionally, its neighbours at other impact speeds (:meth:`Plant.from_curves`)."""
+    optionally, faster curves and the CAE force's rate sensitivity (:meth:`Plant.from_curves`)."""
     labels = tuple(sorted(set(labels_of)))
     group = [labels.index(lab) for lab in labels_of]
-    return Plant.from_curves(list(curves), masses, group, labels, s_hi, neighbours)
+    return Plant.from_curves(list(curves), masses, group, labels, s_hi, faster, force_rate)
 
 
 def headline(effect: str, params: dict) -> dict:

@@ -1,4 +1,4 @@
-"""The rate-aware CAE force of the effect laws (crashfuse.effects) on an analytic rate-dependent model."""
+"""The rate-aware CAE force of the effect laws (crashfuse.effects) on analytic rate-dependent models."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from crashfuse.dynamics import rollout
-from crashfuse.effects import Plant, crush_speed, rate_sensitivity, simulate
+from crashfuse.effects import Plant, crush_force_rate, crush_speed, simulate
+from crashfuse.pulse import Pulse
 from crashfuse.surrogate import CAECurve
 
 M = 1500.0  # kg
@@ -15,22 +16,42 @@ C = 2.0e4  # N s/m: viscous crush force, so the model's da/dv is C / M
 DT, N = 1e-4, 1200
 
 
-def _force_law_rollout(v0: float, mass: float):
-    """A vehicle of ``mass`` whose crush force is K s + C v, loading until it stops."""
-    return rollout(lambda st: (K * st.s + C * np.maximum(st.v, 0.0)) / mass, v0, DT, N)
+def _force_law_rollout(v0: float, mass: float, c2: float = 0.0):
+    """A vehicle of ``mass`` whose crush force is K s + C v (+ c2 v^2), loading until it stops."""
+    viscous = C if c2 == 0.0 else 0.0
+    return rollout(lambda st: (K * st.s + viscous * np.maximum(st.v, 0.0) + c2 * np.maximum(st.v, 0.0) ** 2) / mass,
+                   v0, DT, N)
+
+
+def _runs(v0: float, c2: float = 0.0) -> list:
+    """16 CAE runs of the force law at 0.6-1.4 times ``v0``, their mass varied independently (+-10 %)."""
+    out = []
+    for j, f in enumerate(np.linspace(0.6, 1.4, 16)):
+        w = 1.0 + 0.1 * np.sin(2.4 * j)
+        tr = _force_law_rollout(f * v0, M * w, c2)
+        out.append(Pulse(tr.time, tr.decel[0], f * v0, 0.6 * M * w, 0.4 * M * w, f"C{j}", "cae"))
+    return out
 
 
 def _curve(v0: float) -> CAECurve:
     """The CAE curve of the nominal vehicle at ``v0``: its loading branch, a short elastic unloading."""
-    tr = _force_law_rollout(v0, M)
+    return _curve_of(v0, 0.0)
+
+
+def _curve_of(v0: float, c2: float) -> CAECurve:
+    tr = _force_law_rollout(v0, M, c2)
     moving = tr.v[0] > 0.0
     s, a = tr.s[0][moving], tr.decel[0][moving]
     a_stop = K * s[-1] / M
     return CAECurve(s, a, np.array([0.0, 0.02]), np.array([a_stop, 0.0]), float(s[-1]), 0.02, v0)
 
 
-def _plant(curve: CAECurve, neighbours) -> Plant:
-    return Plant.from_curves([curve], [M], [0], ("all",), 1.2, None if neighbours is None else [neighbours])
+def _plant(curve: CAECurve, runs) -> Plant:
+    """The plant of ``curve``; with CAE ``runs``, rate-aware and continued beyond its crush by a faster curve."""
+    if runs is None:
+        return Plant.from_curves([curve], [M], [0], ("all",), 1.2)
+    return Plant.from_curves([curve], [M], [0], ("all",), 1.2, [_curve_of(1.2 * curve.v0, 0.0)],
+                             lambda s: crush_force_rate(runs, s))
 
 
 def test_crush_speed_follows_the_energy_balance():
@@ -50,10 +71,21 @@ def _branch(v0):
     return tr.s[0][moving], tr.v[0][moving]
 
 
-def test_rate_sensitivity_recovers_the_viscous_term():
-    curves = [_curve(f * 15.0) for f in (0.9, 1.0, 1.1)]
-    s = np.linspace(0.0, 0.5, 200)
-    assert rate_sensitivity(curves, s) == pytest.approx(np.full(s.size, C / M), rel=0.02)
+def test_crush_force_rate_recovers_the_viscous_term():
+    """Runs of several speeds and masses: the force's slope in crush speed is C, with no curvature."""
+    b1, b2 = crush_force_rate(_runs(15.0), np.linspace(0.0, 0.5, 200))
+    assert b1 == pytest.approx(np.full(200, C), rel=0.01)
+    assert np.all(np.abs(b2 * 15.0) < 0.01 * C)
+
+
+def test_the_slope_is_taken_at_the_reference_speed():
+    """A force growing with v^2 is steeper at high speed: each condition gets the slope at its own speed."""
+    c2 = 1.5e3  # N s^2/m^2
+    plant = _plant(_curve_of(15.0, c2), _runs(15.0, c2))
+    s = np.arange(plant.dadv.shape[1]) * plant.s_step
+    v = crush_speed(_curve_of(15.0, c2), s)
+    inside = (s > 0.02) & (v > 3.0)
+    assert plant.dadv[0, inside] == pytest.approx(2.0 * c2 * v[inside] / M, rel=0.03, abs=0.05)
 
 
 def test_rate_aware_plant_predicts_a_heavier_vehicle():
@@ -62,7 +94,7 @@ def test_rate_aware_plant_predicts_a_heavier_vehicle():
     heavy = _force_law_rollout(v0, M + extra)
     base = _curve(v0)
     errors = {}
-    for name, nb in (("s only", None), ("rate aware", [_curve(f * v0) for f in (0.9, 1.0, 1.1)])):
+    for name, nb in (("s only", None), ("rate aware", _runs(v0))):
         got = simulate(_plant(base, nb), ("mass",), {"mass.extra": np.array([extra])}, DT, N)
         loading = heavy.v[0] > 0.0
         errors[name] = np.abs(got.decel[0] - heavy.decel[0])[loading].max() / heavy.decel[0].max()
@@ -72,7 +104,7 @@ def test_rate_aware_plant_predicts_a_heavier_vehicle():
     assert errors["s only"] > 4 * errors["rate aware"]
 
 
-def test_without_neighbours_the_force_depends_on_crush_only():
+def test_without_cae_runs_the_force_depends_on_crush_only():
     plant = _plant(_curve(15.0), None)
     s = np.array([0.3])
     slow, rest = plant.loading(s, np.array([3.0]))
@@ -83,17 +115,17 @@ def test_without_neighbours_the_force_depends_on_crush_only():
 def test_rate_hardening_acts_on_the_static_strength():
     """With a viscous CAE force, the strain-rate law hardens K s only, not C v."""
     v0 = 15.0
-    plant = _plant(_curve(v0), [_curve(f * v0) for f in (0.9, 1.0, 1.1)])
+    plant = _plant(_curve(v0), _runs(v0))
     s, v = np.array([0.2]), np.array([10.0])
     crush, rest = plant.loading(s, v)
     assert crush[0] == pytest.approx((K * 0.2 + C * 10.0) / M, rel=0.01)
     assert rest[0] == pytest.approx(K * 0.2 / M, rel=0.02)
 
 
-def test_neighbours_leave_out_speeds_the_surrogate_cannot_predict():
+def test_no_faster_curve_where_the_surrogate_cannot_predict():
     from types import SimpleNamespace
 
-    from crashfuse.effect_fit import _neighbours
+    from crashfuse.effect_fit import _faster
     from crashfuse.errors import InputError
 
     class Surrogate:
@@ -106,5 +138,5 @@ def test_neighbours_leave_out_speeds_the_surrogate_cannot_predict():
             return _curve(v0)
 
     test = SimpleNamespace(v0=15.0, front_weight=900.0, rear_weight=600.0, meta={})
-    assert [c.v0 for c in _neighbours(Surrogate(16.0), test)] == pytest.approx([12.0, 15.0])
-    assert _neighbours(Surrogate(14.0), test) == []
+    assert _faster(Surrogate(20.0), test).v0 == pytest.approx(18.0)
+    assert _faster(Surrogate(16.0), test) is None
