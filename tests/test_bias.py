@@ -423,3 +423,24 @@ def test_scatter_of_a_model_fitted_before_it_existed_is_a_clear_error(two_regime
     del old.gps_[0].scatter_var_
     with pytest.raises(InputError, match="refit"):
         old.scatter_std(X[:3])
+
+
+# ------------------------------------------------------------------ fast paths
+def test_likelihood_linear_algebra_is_bit_identical_to_the_plain_forms():
+    """The symmetric correlation, the in-place factor and the mirrored inverse give exactly the bits
+    of the plain expressions they replace: the optimiser's path, and so every score, depends on them."""
+    from scipy.linalg import cholesky, lapack
+
+    from crashfuse.bias import _correlation, _factor_with_nugget, _inverse_from_factor, _self_correlation
+    rng = np.random.default_rng(3)
+    Z, theta, nugget = rng.normal(size=(120, 4)), np.array([0.3, 5.0, 1e-4, 80.0]), 1e-3
+    R = _self_correlation(Z, theta)
+    np.testing.assert_array_equal(R, _correlation(Z, Z, theta))
+    plain_L = cholesky(_correlation(Z, Z, theta) + nugget * np.eye(len(Z)), lower=True)
+    L = _factor_with_nugget(R, nugget)
+    np.testing.assert_array_equal(L, plain_L)
+    Kinv = lapack.dpotri(plain_L, lower=1)[0]
+    plain_inverse = np.tril(Kinv) + np.tril(Kinv, -1).T
+    inverse, info = _inverse_from_factor(L)
+    assert info == 0 and inverse.flags.c_contiguous == plain_inverse.flags.c_contiguous
+    np.testing.assert_array_equal(inverse, plain_inverse)
