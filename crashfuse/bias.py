@@ -636,6 +636,11 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         return self._concentrated(np.asarray(params, float), self._Z_hyp, self._u_hyp, eval_gradient)
 
     # --------------------------------------------------------------- prediction
+    def _mean(self, Zs):
+        """Mean (normalised) at standardised points ``Zs`` (m, d) and their correlations ``r`` (n, m)."""
+        r = _correlation(self._Z_train, Zs, self.theta_)
+        return self._design(Zs) @ self._beta + r.T @ self._alpha, r
+
     def _parts(self, Zs):
         """Mean (normalised) and the two variance pieces at standardised points ``Zs`` (m, d).
 
@@ -647,8 +652,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         W : ndarray, shape (p, m)
             ``L_M^-1 u(x)``, ``u = h(x) - H^T K^-1 r(x)``, ``L_M L_M^T = H^T K^-1 H``.
         """
-        r = _correlation(self._Z_train, Zs, self.theta_)
-        mean = self._design(Zs) @ self._beta + r.T @ self._alpha
+        mean, r = self._mean(Zs)
         V = solve_triangular(self._L, r, lower=True, check_finite=False)
         U = self._design(Zs).T - self._Ht.T @ V
         W = solve_triangular(self._LM, U, lower=True, check_finite=False)
@@ -676,11 +680,14 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         Zs = self.scaler_.transform(check_array(X))
         means, stds = [], []
         for start in range(0, len(Zs), _CHUNK):
-            mean, V, W = self._parts(Zs[start:start + _CHUNK])
+            chunk = Zs[start:start + _CHUNK]
+            if not return_std:  # the mean needs no triangular solve against the training points
+                means.append(self._mean(chunk)[0])
+                continue
+            mean, V, W = self._parts(chunk)
             means.append(mean)
-            if return_std:
-                var = 1.0 - (V**2).sum(axis=0) + (W**2).sum(axis=0) + include_noise * self.nugget_
-                stds.append(np.sqrt(np.clip(var * self._sigma2, 0.0, None)))
+            var = 1.0 - (V**2).sum(axis=0) + (W**2).sum(axis=0) + include_noise * self.nugget_
+            stds.append(np.sqrt(np.clip(var * self._sigma2, 0.0, None)))
         mean = np.concatenate(means) * self._y_std + self._y_mean if means else np.empty(0)
         if not return_std:
             return mean
@@ -988,6 +995,9 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         for g, gp in enumerate(self.gps_):
             use = w[:, g] > 0
             if not use.any():
+                continue
+            if not return_std:
+                mean[use] += w[use, g] * gp.predict(X[use])
                 continue
             mu, sd = gp.predict(X[use], return_std=True)
             mean[use] += w[use, g] * mu

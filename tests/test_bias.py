@@ -444,3 +444,12 @@ def test_likelihood_linear_algebra_is_bit_identical_to_the_plain_forms():
     inverse, info = _inverse_from_factor(L)
     assert info == 0 and inverse.flags.c_contiguous == plain_inverse.flags.c_contiguous
     np.testing.assert_array_equal(inverse, plain_inverse)
+
+
+@pytest.mark.parametrize("assignment", ["select", "blend"])
+def test_mean_alone_equals_the_mean_beside_the_std(assignment):
+    X, y = _two_regime_data()
+    model = GMMGPBias(n_clusters=2, cluster_inputs=[1, 2], assignment=assignment, random_state=0).fit(X, y)
+    np.testing.assert_array_equal(model.predict(X), model.predict(X, return_std=True)[0])
+    gp = model.gps_[0]
+    np.testing.assert_array_equal(gp.predict(X), gp.predict(X, return_std=True)[0])
