@@ -522,3 +522,40 @@ def test_plain_and_general_pulse_readers_agree(tmp_path):
     assert cmod._plain_pulse_csv(plain) is not None and cmod._plain_pulse_csv(fancy) is None
     for got, want in zip(read_pulse_csv(plain), read_pulse_csv(fancy)):
         np.testing.assert_array_equal(got, want)
+
+
+def test_pulses_parsed_together_equal_each_file_read_alone(tmp_path):
+    """read_campaign parses plain pulse files in one pass; each pulse is bit-identical to its file
+    read alone. Units, an extra column and a missing final line feed stay on the joint path; CRLF
+    line ends and quotes are read file by file."""
+    t, a = (arr.tolist() for arr in half_sine(15.0))
+    g = [f"{y / G_N!r}" for y in a]
+    texts = {
+        "C1": "time_s,decel_g\n" + "\n".join(f"{x!r},{y}" for x, y in zip(t, g)),
+        "C2": "time_s,decel_mps2\n" + "".join(f"{x!r},{y!r}\n" for x, y in zip(t, a)),
+        "C3": "channel,decel_g,time_s\n" + "".join(f"7,{y},{x!r}\n" for x, y in zip(t, g)),
+        "C4": "time_s,decel_g\r\n" + "".join(f"{x!r},{y}\r\n" for x, y in zip(t, g)),
+        "T1": "time_s,decel_g\n" + "".join(f'"{x!r}",{y}\n' for x, y in zip(t, g)),
+    }
+    rows = ["T1,test,33.5,2100,1700,ICE,FWD,C1"] + [f"{r},cae,33.5,2100,1700,ICE,FWD," for r in ("C1", "C2", "C3", "C4")]
+    write_folder(tmp_path, rows, pulses=texts)
+    files = {r: tmp_path / "pulses" / f"{r}.csv" for r in texts}
+    together = cmod._plain_pulse_files(files.values())
+    assert sorted(p.stem for p in together) == ["C1", "C2", "C3"]
+    campaign = read_campaign(tmp_path)
+    for run_id, path in files.items():
+        alone = read_pulse_csv(path)
+        np.testing.assert_array_equal(campaign.pulses[run_id].time, alone[0])
+        np.testing.assert_array_equal(campaign.pulses[run_id].decel, alone[1])
+
+
+@pytest.mark.parametrize("case", ["nan", "blank", "text", "decreasing time", "absurd peak", "empty", "ragged"])
+def test_a_bad_pulse_among_plain_ones_is_named(tmp_path, case):
+    """Plain neighbours parsed together do not hide a bad file, nor change its message."""
+    text, field, words = BAD_PULSES[case]
+    write_folder(tmp_path, ["C0,cae,35,2000,1500,ICE,FWD,", "C1,cae,35,2000,1500,ICE,FWD,",
+                            "C2,cae,35,2000,1500,ICE,FWD,"], pulses={"C1": text})
+    with pytest.raises(InputError) as err:
+        read_campaign(tmp_path)
+    assert err.value.file.endswith(os.path.join("pulses", "C1.csv")) and err.value.field == field
+    assert words in err.value.message
