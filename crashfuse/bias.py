@@ -26,7 +26,7 @@ from crashfuse.errors import InputError
 
 __all__ = ["KrigingGP", "GMMGPBias", "TooFewPointsError"]
 
-_TRENDS = ("constant", "linear")
+_TRENDS = ("zero", "constant", "linear")
 _CHUNK = 2048  # prediction points per block: bounds the (n_train, chunk) work arrays
 _JITTERS = 10.0 ** np.arange(-12, -3)  # relative jitters tried, in order, for joint draws
 _SEED_MAX = 2**31 - 1
@@ -173,9 +173,11 @@ class KrigingGP(RegressorMixin, BaseEstimator):
 
     Parameters
     ----------
-    trend : {'constant', 'linear'}
-        ``h(x) = [1]`` (ordinary kriging) or ``[1, x_1, ..., x_d]`` on standardised inputs.
-        Linear columns that are constant or collinear in the training data are dropped.
+    trend : {'zero', 'constant', 'linear'}
+        No trend (simple kriging: a zero-mean process, so far from the data the prediction
+        reverts to 0 and the outputs are scaled but not centred), ``h(x) = [1]`` (ordinary
+        kriging) or ``[1, x_1, ..., x_d]`` on standardised inputs. Linear columns that are
+        constant or collinear in the training data are dropped.
     theta_bounds : (float, float)
         Bounds on every ``theta_i`` for inputs standardised to unit variance; the
         correlation length ``1/sqrt(theta)`` spans 1/30 to 300 standard deviations by
@@ -293,7 +295,8 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         if groups is not None and len(groups) != len(y):
             raise ValueError(f"groups has {len(groups)} entries for {len(y)} rows")
         Z = self.scaler_.transform(X)
-        self._y_mean, self._y_std = (y.mean(), y.std()) if self.normalize_y else (0.0, 1.0)
+        centre = self.normalize_y and self.trend != "zero"  # a zero-mean prior must stay zero in y units
+        self._y_mean, self._y_std = (y.mean() if centre else 0.0), (y.std() if self.normalize_y else 1.0)
         u = (y - self._y_mean) / self._y_std
         rng = check_random_state(self.random_state)
         if groups is None:
@@ -460,7 +463,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         self.scaler_ = StandardScaler().fit(X)
         Z = self.scaler_.transform(X)
         self.trend_columns_ = _independent_columns(Z) if self.trend == "linear" else []
-        n_par = 1 + len(self.trend_columns_)
+        n_par = (self.trend != "zero") + len(self.trend_columns_)
         if len(y) < n_par + 2:
             raise ValueError(f"KrigingGP needs at least {n_par + 2} points for a {self.trend} "
                              f"trend in {X.shape[1]}-D, got {len(y)}")
@@ -531,7 +534,9 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         return -ll, -grad
 
     def _design(self, Z):
-        """Trend design matrix ``H``, shape (n, p), on standardised inputs ``Z`` (n, d)."""
+        """Trend design matrix ``H``, shape (n, p), on standardised inputs ``Z`` (n, d); p = 0 for no trend."""
+        if self.trend == "zero":
+            return np.empty((len(Z), 0))
         return np.column_stack([np.ones(len(Z)), Z[:, self.trend_columns_]])
 
     def _concentrated(self, eta, Z, u, gradient=False):
@@ -613,7 +618,8 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         self.n_condition_ = len(u)
         self.sigma2_ = self._sigma2 * self._y_std**2
         self.beta_ = self._beta * self._y_std
-        self.beta_[0] += self._y_mean
+        if self.beta_.size:
+            self.beta_[0] += self._y_mean
 
     @_limit_blas
     def log_marginal_likelihood(self, params, eval_gradient=False):
@@ -872,7 +878,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         """Smallest cluster that keeps its own GP."""
         if self.min_cluster_points is not None:
             return int(self.min_cluster_points)
-        p = 1 + (d if self.trend == "linear" else 0)
+        p = (self.trend != "zero") + (d if self.trend == "linear" else 0)
         return 3 * (p + d + 2)
 
     @_limit_blas

@@ -22,7 +22,7 @@ def _oracle_loglik(eta, Z, u, trend):
     theta, nugget = np.exp(eta[:d]), np.exp(eta[d])
     diff2 = (Z[:, None, :] - Z[None, :, :]) ** 2
     K = np.exp(-(diff2 * theta).sum(-1)) + nugget * np.eye(n)
-    H = np.ones((n, 1)) if trend == "constant" else np.column_stack([np.ones(n), Z])
+    H = _oracle_design(Z, trend)
     Kinv_H, Kinv_u = np.linalg.solve(K, H), np.linalg.solve(K, u)
     beta = np.linalg.solve(H.T @ Kinv_H, H.T @ Kinv_u)
     r = u - H @ beta
@@ -30,10 +30,16 @@ def _oracle_loglik(eta, Z, u, trend):
     return -0.5 * n * np.log(2 * np.pi * sigma2) - 0.5 * np.linalg.slogdet(K)[1] - 0.5 * n
 
 
+def _oracle_design(Z, trend):
+    """Trend basis: none (simple kriging), [1] or [1, z]."""
+    n = len(Z)
+    return {"zero": np.empty((n, 0)), "constant": np.ones((n, 1)), "linear": np.column_stack([np.ones(n), Z])}[trend]
+
+
 def _standardised(gp, X, y):
-    """The (Z, u) the estimator's likelihood sees (no subsampling at these sizes)."""
+    """The (Z, u) the estimator's likelihood sees (no subsampling at these sizes; no centring without a trend)."""
     Z = gp.scaler_.transform(X)
-    return Z, (y - y.mean()) / y.std()
+    return Z, (y - (0.0 if gp.trend == "zero" else y.mean())) / y.std()
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +74,7 @@ def test_recovers_known_function_noisy():
     assert np.sqrt(gp.sigma2_ * gp.nugget_) == pytest.approx(noise, rel=0.3)
 
 
-@pytest.mark.parametrize("trend", ["constant", "linear"])
+@pytest.mark.parametrize("trend", ["zero", "constant", "linear"])
 def test_loglik_matches_dense_oracle(noisy_2d, trend):
     X, y = noisy_2d
     gp = KrigingGP(trend=trend, random_state=0).fit(X, y)
@@ -77,7 +83,7 @@ def test_loglik_matches_dense_oracle(noisy_2d, trend):
         assert gp.log_marginal_likelihood(eta) == pytest.approx(_oracle_loglik(np.array(eta), Z, u, trend), abs=1e-7)
 
 
-@pytest.mark.parametrize("trend", ["constant", "linear"])
+@pytest.mark.parametrize("trend", ["zero", "constant", "linear"])
 def test_analytic_gradient_matches_finite_differences(noisy_2d, trend):
     X, y = noisy_2d
     gp = KrigingGP(trend=trend, random_state=0).fit(X, y)
@@ -121,7 +127,7 @@ def test_mle_matches_brute_force_scan_2d(noisy_2d):
     assert np.all(np.abs(eta - np.array(arg)) <= 2 * steps)  # correlated ridge: two grid steps
 
 
-@pytest.mark.parametrize("trend", ["constant", "linear"])
+@pytest.mark.parametrize("trend", ["zero", "constant", "linear"])
 def test_predictive_variance_matches_bordered_kriging_system(noisy_2d, trend):
     """BLUP with unknown beta from the Lagrangian system [[K, H], [H', 0]] [w; l] = [r; h]."""
     X, y = noisy_2d
@@ -132,8 +138,7 @@ def test_predictive_variance_matches_bordered_kriging_system(noisy_2d, trend):
     n = len(Z)
     K = np.exp(-(((Z[:, None] - Z[None]) ** 2) * gp.theta_).sum(-1)) + gp.nugget_ * np.eye(n)
     r = np.exp(-(((Z[:, None] - Zs[None]) ** 2) * gp.theta_).sum(-1))
-    H = np.ones((n, 1)) if trend == "constant" else np.column_stack([np.ones(n), Z])
-    h = np.ones((1, 3)) if trend == "constant" else np.vstack([np.ones(3), Zs.T])
+    H, h = _oracle_design(Z, trend), _oracle_design(Zs, trend).T
     p = H.shape[1]
     A = np.block([[K, H], [H.T, np.zeros((p, p))]])
     rhs = np.vstack([r, h])
@@ -165,7 +170,7 @@ def test_gls_form_matches_bayesian_form_as_prior_broadens(noisy_2d):
     assert errors[2] < 5e-5
 
 
-@pytest.mark.parametrize("trend", ["constant", "linear"])
+@pytest.mark.parametrize("trend", ["zero", "constant", "linear"])
 def test_function_draws_have_predicted_mean_and_width(noisy_2d, trend):
     X, y = noisy_2d
     gp = KrigingGP(trend=trend, random_state=0).fit(X, y)
@@ -453,3 +458,21 @@ def test_mean_alone_equals_the_mean_beside_the_std(assignment):
     np.testing.assert_array_equal(model.predict(X), model.predict(X, return_std=True)[0])
     gp = model.gps_[0]
     np.testing.assert_array_equal(gp.predict(X), gp.predict(X, return_std=True)[0])
+
+
+def test_zero_trend_reverts_to_zero_far_from_the_data():
+    """Simple kriging: beyond the data the bias goes to 0 (the CAE), ordinary kriging to a level."""
+    X = np.linspace(0, 4, 30)[:, None]
+    y = 3.0 + np.sin(2 * X[:, 0])  # a bias with a clear non-zero level
+    far = np.array([[40.0]])
+    zero = KrigingGP(trend="zero", random_state=0).fit(X, y)
+    const = KrigingGP(trend="constant", random_state=0).fit(X, y)
+    assert zero.beta_.size == 0
+    assert abs(zero.predict(far)[0]) < 1e-6
+    assert const.predict(far)[0] == pytest.approx(const.beta_[0], abs=1e-6)
+    assert const.beta_[0] > 2.0
+    # inside the data both interpolate
+    inside = np.array([[1.3]])
+    assert zero.predict(inside)[0] == pytest.approx(3.0 + np.sin(2.6), abs=1e-3)
+    # far away the latent variance is sigma^2 alone (no trend-estimation term)
+    assert zero.predict(far, return_std=True)[1][0] == pytest.approx(np.sqrt(zero.sigma2_), rel=1e-9)
