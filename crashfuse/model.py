@@ -32,6 +32,11 @@ FORMAT = 1
 # to the CAE deceleration (a rate effect scales the force), chosen by grouped leave-one-test-out
 # density on the training tests (docs/method-rollout.md).
 DEFAULT_TARGET = {"paper": "absolute", "state": "relative"}
+# The GPs' trend: the paper's constant level; in the state mode none (simple kriging, the
+# Kennedy-O'Hagan zero-mean discrepancy): where no test informs the bias - a slower test, a
+# sparser cluster - the correction fades to zero and the prediction to the CAE model's
+# (docs/method-rollout.md, "Trend").
+DEFAULT_TREND = {"paper": "constant", "state": "zero"}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
 _MATCH_RTOL = 1e-6  # a condition "is" a test's when v0 and both masses agree to this
 _REACH_TOL = 0.02  # crush or rebound up to 2 % beyond the bias data is not flagged (thinning, rounding)
@@ -269,7 +274,7 @@ def _load(kind: str, cls, path):
 def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, assignment: str = "select",
               extra_inputs: bool = False, n_grid: int | None = 200, use_companion: bool = False,
               random_state: int = 0, surrogate: CAESurrogate | None = None, target: str | None = None,
-              weights: bool = True, velocity: str = "sqrt", **bias_params) -> FittedModel:
+              trend: str | None = None, weights: bool = True, velocity: str = "sqrt", **bias_params) -> FittedModel:
     """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
 
     Parameters
@@ -301,13 +306,16 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
         What the GPs learn: the bias in m/s^2, or the bias relative to the CAE deceleration
         (:func:`crashfuse.projection.bias_scale`); the rollout adds ``scale(a_cae) * bias``.
         None: ``DEFAULT_TARGET[inputs]`` (``paper`` as published, absolute; ``state`` relative).
+    trend : {"zero", "constant", "linear"} or None
+        The GPs' trend (:class:`crashfuse.bias.KrigingGP`). None: ``DEFAULT_TREND[inputs]``
+        (``paper`` as published, constant; ``state`` zero).
     weights : bool
         Axle masses among the bias inputs.
     velocity : {"linear", "sqrt"}
         The ``state`` mode's velocity coordinate (:func:`crashfuse.projection.bias_data`);
         ``sqrt`` (default): sign(v) sqrt(|v|), a concave rate coordinate (docs/method-rollout.md).
     **bias_params
-        Further :class:`GMMGPBias` settings (``trend``, ``n_restarts``, ``max_fit_points`` ...).
+        Further :class:`GMMGPBias` settings (``n_restarts``, ``max_fit_points`` ...).
 
     Returns
     -------
@@ -321,6 +329,7 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     """
     _check_settings(k, inputs, assignment, n_grid, random_state)
     target = DEFAULT_TARGET[inputs] if target is None else target
+    trend = DEFAULT_TREND[inputs] if trend is None else trend
     if not campaign.cae:
         raise InputError("the campaign has no CAE runs: the method corrects a CAE model", campaign.root, "source")
     held = _holdout(campaign, holdout)
@@ -332,11 +341,11 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     data = bias_data(campaign, train, inputs, extra_inputs, n_grid, surrogate=surrogate, use_companion=True,
                      target=target, weights=weights, velocity=velocity)
     seeds = np.random.RandomState(random_state).randint(_SEED_MAX, size=len(BRANCHES))
-    bias = {b: _fit_branch(data, b, k, assignment, int(seed), bias_params, campaign.root)
+    bias = {b: _fit_branch(data, b, k, assignment, int(seed), {"trend": trend, **bias_params}, campaign.root)
             for b, seed in zip(BRANCHES, seeds)}
     settings = dict(k=int(k), inputs=inputs, assignment=assignment, extra_inputs=bool(extra_inputs),
                     n_grid=n_grid, use_companion=bool(use_companion), random_state=random_state,
-                    holdout=sorted(held), target=target, weights=bool(weights), velocity=velocity,
+                    holdout=sorted(held), target=target, trend=trend, weights=bool(weights), velocity=velocity,
                     bias_params=dict(bias_params))
     return FittedModel(
         surrogate=surrogate, bias_=bias, settings=settings,

@@ -347,3 +347,12 @@ def test_choose_k_scores_each_k_on_training_tests_only(campaign, surrogate, monk
     # every refit leaves one training test out, and no fit ever sees the held-out tests
     fits = [tests for tests in seen if len(tests) == 3]
     assert len(fits) == 2 * 4 and all(not set(held) & set(tests) for tests in seen)
+
+
+@pytest.mark.parametrize(("inputs", "trend"), [("paper", "constant"), ("state", "zero")])
+def test_each_input_mode_has_its_default_trend(campaign, surrogate, inputs, trend):
+    model = fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, **FAST)
+    assert model.settings["trend"] == trend
+    assert all(gp.trend == trend for est in model.bias_.values() if est is not None for gp in est.gps_)
+    other = fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, trend="linear", **FAST)
+    assert all(gp.trend == "linear" for gp in other.bias_["loading"].gps_)

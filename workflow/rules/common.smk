@@ -29,6 +29,7 @@ def method_args():
     ]
     flags += ["--use-companion"] if METHOD["use_companion"] else []
     flags += ["--extra-inputs"] if METHOD["extra_inputs"] else []
+    flags += [f"--trend {METHOD['trend']}"] if METHOD["trend"] else []
     return " ".join(flags)
 
 
