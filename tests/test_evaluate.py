@@ -187,3 +187,22 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     assert main(["evaluate", str(folder), "--k", "1", "--surrogate", str(folder / "conditions.csv"),
                  "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_workers_read_the_campaign_once_from_a_pickle_they_remove(campaign, surrogate, tmp_path, monkeypatch):
+    """With workers the campaign and surrogate travel once, in a temporary pickle removed afterwards;
+    the folds equal those of workers given them with every fold, bit for bit. (In-process folds,
+    ``n_jobs=1``, differ from any worker's in the last bits: BLAS runs other thread counts there.)"""
+    from joblib import Parallel, delayed
+
+    monkeypatch.setattr(ev.tempfile, "tempdir", str(tmp_path))
+    folds = [("paper", 1, "T02"), ("state", 1, "T08")]
+    settings = (5, 0, "test", FAST)
+    shared = list(ev._run_folds(campaign, surrogate, folds, 2, settings))
+    assert not list(tmp_path.iterdir())
+    direct = Parallel(n_jobs=2)(delayed(ev._fold)(campaign, surrogate, *fold, *settings) for fold in folds)
+    for got, want in zip(shared, direct):
+        assert got["iso"] == want["iso"]
+        assert {k: v for k, v in got["coverage"].items() if not k.endswith("_s")} == \
+            {k: v for k, v in want["coverage"].items() if not k.endswith("_s")}
+        pd.testing.assert_frame_equal(got["frame"], want["frame"], check_exact=True)
