@@ -15,6 +15,7 @@ import sys
 import time
 
 import numpy as np
+import psutil
 
 from crashfuse.evaluate import evaluate
 from crashfuse.io.campaign import read_campaign
@@ -37,6 +38,24 @@ def _peak_mib() -> tuple[float, float]:
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     return own, child
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process and of its children, live (the joblib workers) or reaped.
+
+    Wall time on the shared machine depends on what else runs; the CPU seconds of the evaluation
+    do much less, so before/after comparisons use them.
+    """
+    me = psutil.Process()
+    reaped = resource.getrusage(resource.RUSAGE_CHILDREN)
+    total = reaped.ru_utime + reaped.ru_stime
+    for proc in [me, *me.children(recursive=True)]:
+        try:
+            times = proc.cpu_times()
+        except psutil.NoSuchProcess:  # ended between the listing and the reading: counted as reaped
+            continue
+        total += times.user + times.system
+    return total
 
 
 def _targets(iso, coverage) -> None:
@@ -75,14 +94,17 @@ def main(argv=None) -> int:
     print(f"campaign: {len(campaign.tests)} tests, {len(campaign.cae)} CAE runs ({t1 - t0:.1f} s)")
     print(f"surrogate fit (once, shared by all folds): {t2 - t1:.1f} s; one fold fit (K={DEFAULT_K}, state): "
           f"{t3 - t2:.1f} s")
+    cpu0 = _cpu_seconds()
     result = evaluate(campaign, ks=args.ks, inputs=args.inputs, out=args.out, n_samples=args.samples,
                       n_jobs=args.jobs, surrogate=surrogate, use_companion=args.use_companion,
                       assignment=args.assignment,
                       progress=lambda line: print(line, file=sys.stderr))
+    cpu = _cpu_seconds() - cpu0
     own, child = _peak_mib()
     n_folds = len(result.coverage)
     print(f"\nfull evaluation: {n_folds} folds in {result.wall_time:.1f} s on {args.jobs} jobs "
-          f"(target <= 300 s); peak RSS main {own:.0f} MiB, largest worker {child:.0f} MiB (target <= 4096)")
+          f"(target <= 300 s); {cpu:.0f} s CPU with the workers (outputs included), {cpu / args.jobs:.0f} s per job; "
+          f"peak RSS main {own:.0f} MiB, largest worker {child:.0f} MiB (target <= 4096)")
     print(f"per fold: fit {result.coverage['fit_s'].mean():.2f} s, predict {result.coverage['predict_s'].mean():.2f} s "
           f"({args.samples} samples)")
     iso = result.iso_table
