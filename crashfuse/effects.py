@@ -16,10 +16,10 @@ unloading coordinate ``u = s_max - s``::
   own maximum crush (which moves when an effect changes the pulse): with
   ``r = a_CAE(s_max) / a_CAE,u(0)``, ``F_crush = M r a_CAE,u(u / r)`` - force and elastic
   spring-back both scale with the peak force, as for a linear elastic unloading.
-* ``a_CAE(s, v) = a_CAE(s) + (da/dv)(s) (v - v_CAE(s))``: the CAE run's own deceleration along its
-  own trajectory ``v_CAE(s)``, moved to the rollout's velocity with the CAE model's sensitivity to
-  crush speed at fixed crush at that speed (:func:`crush_force_rate`, a regression over all CAE
-  runs; 0 when none are given). A CAE model with rate effects of its own (material rate
+* ``a_CAE(s, v) = a_CAE(s) + [F_v(s, v) - F_v(s, v_CAE(s))] / M``: the CAE run's own deceleration
+  along its own trajectory ``v_CAE(s)``, moved to the rollout's velocity along the CAE model's
+  force-speed dependence at fixed crush ``F_v = b1 v + b2 v^2`` (:func:`crush_force_rate`, a
+  regression over all CAE runs; 0 when none are given). A CAE model with rate effects of its own (material rate
   hardening, damping) then responds to an effect that changes the velocity - an extra mass
   arrives faster at every crush - instead of replaying its force-crush curve. ``F_crush >= 0``.
 * ``F_extra`` collects added forces (0 for the CAE model); ``M_eff`` starts at ``M``.
@@ -101,10 +101,11 @@ class Plant:
         Uniform grid steps in m of the loading (from s = 0) and unloading (from u = 0) tables.
     a_rest : ndarray, shape (n, n_s)
         CAE loading deceleration (m/s^2) of each of ``n`` conditions on the s grid at zero crush
-        speed: ``a_CAE(s) - (da/dv)(s) v_CAE(s)`` (the CAE curve itself when ``dadv`` is 0;
-        continued beyond the run's data as :func:`_reference` says).
-    dadv : ndarray, shape (n, n_s)
-        Sensitivity of the CAE loading deceleration to crush speed at fixed crush (1/s).
+        speed: ``a_CAE(s) - dadv v_CAE(s) - dadv2 v_CAE(s)^2`` (the CAE curve itself without a
+        speed dependence; continued beyond the run's data as :func:`_reference` says).
+    dadv, dadv2 : ndarray, shape (n, n_s)
+        The CAE loading deceleration's dependence on crush speed at fixed crush,
+        ``a_CAE(s, v) = a_rest + dadv v + dadv2 v^2`` (1/s and 1/m).
     a_unload : ndarray, shape (n, n_u)
         CAE unloading deceleration (m/s^2) on the u grid (0 beyond the spring-back).
     mass : ndarray, shape (n,)
@@ -120,6 +121,7 @@ class Plant:
     u_step: float
     a_rest: np.ndarray
     dadv: np.ndarray
+    dadv2: np.ndarray
     a_unload: np.ndarray
     mass: np.ndarray
     v0: np.ndarray
@@ -135,8 +137,8 @@ class Plant:
         speed (or None): the reference beyond the curve's maximum crush (:func:`_reference`).
         ``force_rate``, if given, gives the CAE model's crush force as a quadratic in crush speed
         at fixed crush (:func:`crush_force_rate`: a callable from the crush grid in m to its two
-        coefficients); each condition's ``da/dv`` is its slope at the reference trajectory's own
-        speed over the nominal mass. Without it the CAE force depends on crush only.
+        coefficients, over the nominal mass in the deceleration); the CAE curve moves along it
+        from the reference trajectory's own speed. Without it the CAE force depends on crush only.
         """
         s = np.linspace(0.0, s_hi, n_s)
         u_hi = max(c.u_end for c in curves) * 1.05
@@ -145,14 +147,14 @@ class Plant:
         faster = [None] * len(curves) if faster is None else faster
         a, v = (np.array(x) for x in zip(*(_reference(c, f, s) for c, f in zip(curves, faster))))
         b1, b2 = (0.0, 0.0) if force_rate is None else force_rate(s)
-        dadv = (b1 + 2.0 * b2 * v) / mass[:, None] + np.zeros_like(a)
-        return cls(s[1], u[1], a - dadv * v, dadv, np.array([c.unloading(u) for c in curves]),
+        dadv, dadv2 = (b / mass[:, None] + np.zeros_like(a) for b in (b1, b2))
+        return cls(s[1], u[1], a - dadv * v - dadv2 * v ** 2, dadv, dadv2, np.array([c.unloading(u) for c in curves]),
                    mass, np.array([c.v0 for c in curves]), np.asarray(group, int), tuple(labels))
 
     def subset(self, rows) -> "Plant":
         """The plant of the conditions ``rows`` (in that order, repeats allowed)."""
         rows = np.asarray(rows, int)
-        return dataclasses.replace(self, a_rest=self.a_rest[rows], dadv=self.dadv[rows],
+        return dataclasses.replace(self, a_rest=self.a_rest[rows], dadv=self.dadv[rows], dadv2=self.dadv2[rows],
                                    a_unload=self.a_unload[rows], mass=self.mass[rows], v0=self.v0[rows],
                                    group=self.group[rows])
 
@@ -161,7 +163,8 @@ class Plant:
         ``v`` (m/s), and the same at rest: two arrays of shape (n,), both >= 0."""
         i, w = _cell(s / self.s_step, self.a_rest.shape[1])
         rest = _take(self.a_rest, i, w)
-        return np.maximum(rest + _take(self.dadv, i, w) * v, 0.0), np.maximum(rest, 0.0)
+        speed = _take(self.dadv, i, w) * v + _take(self.dadv2, i, w) * v ** 2
+        return np.maximum(rest + speed, 0.0), np.maximum(rest, 0.0)
 
     def at_rest(self, s: np.ndarray) -> np.ndarray:
         """CAE loading deceleration (m/s^2) at crush ``s`` (m) and zero crush speed, shape (n,), >= 0."""
@@ -209,8 +212,8 @@ def crush_force_rate(runs, s: np.ndarray) -> np.ndarray:
     effect from the vehicle's, because a CAE design varies the impact speed independently of the
     vehicle. Every run enters, so the slope is far less noisy than differences of surrogate
     curves; the quadratic term lets the sensitivity change with speed (material rate hardening
-    is steepest at low rates), so each condition gets the slope at its own crush speed,
-    ``dF/dv = b1 + 2 b2 v``. Where fewer than :data:`RUNS_PER_COEF` runs per coefficient still
+    is steepest at low rates), so a rollout slower or faster than its CAE run moves along the
+    curve, not along the tangent at the run's speed. Where fewer than :data:`RUNS_PER_COEF` runs per coefficient still
     move (deep crush, reached by fast runs only), the last supported values are held.
 
     Parameters

@@ -78,14 +78,15 @@ def test_crush_force_rate_recovers_the_viscous_term():
     assert np.all(np.abs(b2 * 15.0) < 0.01 * C)
 
 
-def test_the_slope_is_taken_at_the_reference_speed():
-    """A force growing with v^2 is steeper at high speed: each condition gets the slope at its own speed."""
+def test_the_cae_force_follows_a_curved_speed_dependence():
+    """A force growing with v^2: a slower or faster rollout moves along the curve, not the tangent."""
     c2 = 1.5e3  # N s^2/m^2
     plant = _plant(_curve_of(15.0, c2), _runs(15.0, c2))
-    s = np.arange(plant.dadv.shape[1]) * plant.s_step
-    v = crush_speed(_curve_of(15.0, c2), s)
-    inside = (s > 0.02) & (v > 3.0)
-    assert plant.dadv[0, inside] == pytest.approx(2.0 * c2 * v[inside] / M, rel=0.03, abs=0.05)
+    s = np.array([0.2])
+    for v in (3.0, 8.0, 14.0):
+        crush, rest = plant.loading(s, np.array([v]))
+        assert crush[0] == pytest.approx((K * 0.2 + c2 * v ** 2) / M, rel=0.01)
+        assert rest[0] == pytest.approx(K * 0.2 / M, rel=0.01)
 
 
 def test_rate_aware_plant_predicts_a_heavier_vehicle():
