@@ -50,11 +50,30 @@ def _controller():
     return ThreadpoolController()
 
 
+def blas_threads(n):
+    """Context manager running BLAS on ``n`` threads (None: unchanged).
+
+    One thread also makes results independent of the machine: a threaded matrix product sums
+    in an order that depends on the thread count, and a last-bit change can move an optimiser
+    to another local optimum (a ``paper`` K3 fold's ISO moved by 0.008).
+    """
+    return _controller().limit(limits=n, user_api="blas")
+
+
+def one_blas_thread(func):
+    """Decorator: run ``func`` under :func:`blas_threads` (1)."""
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        with blas_threads(1):
+            return func(*args, **kwargs)
+    return wrapper
+
+
 def _limit_blas(method):
     """Run an estimator method with ``self.blas_threads`` BLAS threads."""
     @functools.wraps(method)
     def wrapper(self, *args, **kwargs):
-        with _controller().limit(limits=self.blas_threads, user_api="blas"):
+        with blas_threads(self.blas_threads):
             return method(self, *args, **kwargs)
     return wrapper
 

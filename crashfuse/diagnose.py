@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from crashfuse.bias import one_blas_thread
 from crashfuse.effect_fit import DT, FoldFits, TestCase, effect_params, fit_folds, loto_sets, predict, test_case
 from crashfuse.effects import EFFECTS, V_REF, check_effect, headline
 from crashfuse.errors import InputError
@@ -101,6 +102,7 @@ class Diagnosis:
         }
 
 
+@one_blas_thread  # the effect fits' normal equations: the same bits on any machine
 def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, min_wins: float = MIN_WINS,
              k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
              surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,

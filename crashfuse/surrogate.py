@@ -37,7 +37,7 @@ from sklearn.base import BaseEstimator
 from sklearn.utils import check_random_state
 from sklearn.utils.validation import check_is_fitted
 
-from crashfuse.bias import _SEED_MAX, KrigingGP
+from crashfuse.bias import _SEED_MAX, KrigingGP, one_blas_thread
 from crashfuse.domain import Branches, displacement_branches
 from crashfuse.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
@@ -242,6 +242,7 @@ class CAESurrogate(BaseEstimator):
         self.max_fit_points = max_fit_points
         self.random_state = random_state
 
+    @one_blas_thread  # the imputation's products: the same bits on any machine
     def fit(self, runs: Campaign | Iterable[Pulse]) -> "CAESurrogate":
         """Learn the surrogate from CAE runs.
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from sklearn.base import clone
 from sklearn.exceptions import NotFittedError
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from crashfuse.domain import displacement_branches
 from crashfuse.errors import InputError
@@ -15,6 +16,7 @@ from crashfuse.filters import filter_pulse
 from crashfuse.io.nhtsa import read_nhtsa
 from crashfuse.iso18571 import iso_score
 from crashfuse.pulse import Pulse
+from crashfuse import surrogate as surrogate_module
 from crashfuse.surrogate import CAECurve, CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
@@ -141,6 +143,19 @@ def test_estimator_manners_and_seeding(world):
     b = clone(est).fit(runs).curve(10.0, 950.0, 720.0, "Type I", "FWD")
     np.testing.assert_array_equal(a.a_loading, b.a_loading)
     assert a.u_end == b.u_end
+
+
+def test_the_fit_runs_on_one_blas_thread_whatever_the_caller_set(world, monkeypatch):
+    # A threaded product sums in a thread-count-dependent order: the workflow (one thread per
+    # job) and a 2-thread shell gave surrogates 1e-5 apart and a fold 0.008 apart in ISO.
+    seen = []
+    impute = surrogate_module._impute_low_rank
+    monkeypatch.setattr(surrogate_module, "_impute_low_rank", lambda *a: (
+        seen.append([i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]), impute(*a))[1])
+    with threadpool_limits(limits=2, user_api="blas"):
+        CAESurrogate(n_components=4, n_unload_components=3, random_state=0).fit(
+            [world.pulses[r] for r in world.cae[:60]])
+    assert seen and all(n == [1] * len(n) for n in seen)
 
 
 def test_the_surrogate_records_and_checks_its_campaign(world, fitted):
