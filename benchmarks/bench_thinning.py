@@ -184,7 +184,7 @@ def _projection(campaign, surrogate, tests, model, n_grid):
     """Bias data of ``tests`` as ``model`` learnt them (inputs, target, weights), thinned to ``n_grid``."""
     s = model.settings
     return bias_data(campaign, tests, s["inputs"], s["extra_inputs"], n_grid, surrogate=surrogate,
-                     target=s["target"], weights=s["weights"])
+                     target=s["target"], weights=s["weights"], velocity=s["velocity"])
 
 
 def fold_errors(campaign, surrogate, test_id, model, n_grid) -> dict:

@@ -91,13 +91,10 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
         raise InputError("the campaign has no CAE runs: the diagnosis explains a CAE model's gap", campaign.root,
                          "source")
     rate_aware = rate_aware and len({round(campaign.pulses[r].v0, 6) for r in campaign.cae}) >= MIN_CAE_SPEEDS
-    if surrogate is None and rate_aware:
-        surrogate = CAESurrogate(random_state=random_state).fit(campaign)
-    curves, sources = [], []
-    for t in campaign.tests:
-        curve, surrogate, source = _cae_curve(campaign, t, surrogate, random_state)
-        curves.append(curve)
-        sources.append(source)
+    if surrogate is None and (rate_aware or any(_needs_surrogate(campaign, t) for t in campaign.tests)):
+        surrogate = CAESurrogate(random_state=random_state).fit(campaign)  # one source of curves for every test
+    curves = [cae_curve(campaign, campaign.pulses[t], surrogate) for t in campaign.tests]
+    sources = ["surrogate" if campaign.companion(t) is None else "companion" for t in campaign.tests]
     pulses = [campaign.pulses[t] for t in campaign.tests]
     record = min(RECORD, max(p.time[-1] for p in pulses))  # each test is compared within its own record
     time = np.arange(int(np.floor(record / DT + 1e-9)) + 1) * DT
@@ -127,13 +124,10 @@ def _label(campaign: Campaign, test_id: str) -> str:
     return "all" if value is None or (isinstance(value, float) and np.isnan(value)) else str(value)
 
 
-def _cae_curve(campaign: Campaign, test_id: str, surrogate, random_state):
-    """The projection's choice of CAE curve; the surrogate is fitted only when a test needs it."""
+def _needs_surrogate(campaign: Campaign, test_id: str) -> bool:
+    """A test with no companion, or one whose companion never stops: the projection needs the surrogate."""
     companion = campaign.companion(test_id)
-    if surrogate is None and (companion is None or CAECurve.from_pulse(companion).u is None):
-        surrogate = CAESurrogate(random_state=random_state).fit(campaign)
-    curve = cae_curve(campaign, campaign.pulses[test_id], surrogate)
-    return curve, surrogate, "surrogate" if companion is None else "companion"
+    return companion is None or CAECurve.from_pulse(companion).u is None
 
 
 @dataclasses.dataclass(frozen=True)

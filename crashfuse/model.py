@@ -169,9 +169,9 @@ class FittedModel:
         pulse = self._companion(cond) if self.settings["use_companion"] else None
         if pulse is None:
             return self._surrogate_curve(cond, check=True)
-        curve = CAECurve.from_pulse(pulse)
-        # A companion that never stops inside its record borrows the surrogate's unloading branch.
-        return curve if curve.u is not None else CAECurve.from_pulse(pulse, self._surrogate_curve(cond, False))
+        # Built as the training data built it (projection.cae_curve): a companion that does not reach
+        # separation in its record borrows the surrogate's unloading branch.
+        return CAECurve.from_pulse(pulse, unloading_from=self._surrogate_curve(cond, False))
 
     def _surrogate_curve(self, cond: Condition, check: bool) -> CAECurve:
         lo, hi = self.ranges["cae_condition"]
@@ -261,6 +261,8 @@ def _load(kind: str, cls, path):
             payload = pickle.load(fh)
     except FileNotFoundError:
         raise InputError(f"no such {kind} file", path) from None
+    except OSError as err:
+        raise InputError(f"cannot read the {kind} file ({err.strerror})", path) from None
     except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError) as err:
         raise InputError(f"not a crashfuse {kind} file ({type(err).__name__})", path) from None
     if not isinstance(payload, dict) or not isinstance(payload.get(kind), cls):

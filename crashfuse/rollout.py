@@ -45,7 +45,7 @@ from scipy.stats import norm
 
 from crashfuse.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
-from crashfuse.metrics import occupant_load_criterion
+from crashfuse.metrics import REBOUND_WINDOW, occupant_load_criterion
 from crashfuse.projection import BRANCHES, bias_scale
 from crashfuse.units import G0, KMH, MM, MS
 
@@ -435,7 +435,7 @@ def trajectory_metrics(traj: Trajectory, v0: float) -> dict[str, np.ndarray]:
         "t_peak_ms": t[i_peak] / MS,
         "t_zero_velocity_ms": np.where(stopped, t_stop / MS, np.nan),
         "dynamic_crush_mm": np.where(stopped, traj.s_max / MM, np.nan),
-        "rebound_kmh": np.maximum(0.0, -v.min(axis=1)) / KMH,
+        "rebound_kmh": np.maximum(0.0, -v[:, t <= REBOUND_WINDOW].min(axis=1)) / KMH,
         "olc_g": np.array([np.nan if o is None else o / G0 for o in olc]),
     }
 
