@@ -43,7 +43,6 @@ from crashfuse.units import G0, MPH, MS
 
 THRESHOLD = 0.10  # relative drop of the held-out mean squared error an effect must bring
 MIN_WINS = 2 / 3  # share of folds whose held-out error must drop
-SHRINK_MODELS = ("CAE", "CAE+effects", "CAE+effects+GMM-GPR", "GMM-GPR")
 
 
 @dataclasses.dataclass

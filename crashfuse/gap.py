@@ -285,8 +285,10 @@ def locate_gap(campaign: Campaign, surrogate: CAESurrogate | None = None, k: int
 def choose_k(X, random_state: int = 0, candidates=K_CANDIDATES) -> tuple[int, dict]:
     """K of the bias model's mixture by BIC, on its own clustering view (standardised inputs).
 
-    The mixture is fitted as :class:`crashfuse.bias.GMMGPBias` fits it (full covariance, 5
-    initialisations, covariance floor 1e-3); candidates above the number of points are skipped.
+    A mixture of the same form as :class:`crashfuse.bias.GMMGPBias`'s (full covariance, 5
+    initialisations, covariance floor 1e-3), seeded with ``random_state`` as given and without its
+    small-cluster merging, so the K chosen here is a model-selection reading, not the clusters the
+    bias model then fits; candidates above the number of points are skipped.
 
     Parameters
     ----------

@@ -71,7 +71,8 @@ class FittedModel:
     bias_ : dict of str to GMMGPBias or None
         Per branch; None where the training tests gave no points on that branch (zero bias).
     settings : dict
-        ``k, inputs, assignment, extra_inputs, n_grid, use_companion, random_state, holdout``.
+        ``k, inputs, assignment, extra_inputs, n_grid, use_companion, random_state, holdout, target,
+        trend, weights, velocity, bias_params`` (the arguments of :func:`fit_model`).
     columns : dict of str to tuple of str
         Bias input columns per branch, in order (:func:`crashfuse.projection.bias_columns`).
     training_tests : list of str
@@ -84,7 +85,8 @@ class FittedModel:
     ranges : dict
         ``condition``: (lo, hi) arrays of [v0, w_f, w_r] over the training tests; ``x_max`` per
         branch: the largest branch coordinate in the bias data (m); ``cae_condition``: (lo, hi) of
-        the CAE runs' conditions (the surrogate's range).
+        the CAE runs' conditions (the surrogate's range); ``state`` (``state`` inputs only): per
+        branch, the joint (x, v) coverage of the bias data that flags a rollout leaving it.
     companions : list of (Condition, Pulse)
         Every test's condition and its companion CAE run.
     categories : dict of str to list of str
