@@ -97,6 +97,22 @@ class Trajectory:
     UNLOADING = 1
     SEPARATED = 2
 
+    def on_branch(self, branch: str, sample: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where sample ``sample`` is on ``branch`` ('loading' | 'unloading'), and its coordinates there.
+
+        Returns
+        -------
+        on : ndarray of bool, shape (n,)
+        x : ndarray, shape (n_on,)
+            Branch coordinate in m: ``s`` while loading, ``s_max - s`` while unloading.
+        v : ndarray, shape (n_on,)
+            Velocity in m/s.
+        """
+        loading = branch == "loading"
+        on = self.branch[sample] == (self.LOADING if loading else self.UNLOADING)
+        x = self.s[sample, on] if loading else self.s_max[sample] - self.s[sample, on]
+        return on, x, self.v[sample, on]
+
 
 DecelFn = Callable[[State], np.ndarray]
 

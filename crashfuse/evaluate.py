@@ -27,14 +27,13 @@ import numpy as np
 import pandas as pd
 from joblib import Parallel, delayed, effective_n_jobs
 
-from crashfuse.dynamics import Trajectory
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
 from crashfuse.iso18571 import iso_score
 from crashfuse.model import fit_model
 from crashfuse.plots import fold_figure, save_png
-from crashfuse.projection import INPUTS
+from crashfuse.projection import BRANCHES, INPUTS
 from crashfuse.report import (BASELINE, COLUMNS, SCORES, WINDOWS, FoldRecord, model_label, window_bounds,
                               write_fold_json)
 from crashfuse.rollout import predict
@@ -265,12 +264,11 @@ def cluster_switches(model, pred) -> int:
     path = pred.mean_path
     cond = model.condition(**pred.condition)
     count = 0
-    for branch, code in (("loading", Trajectory.LOADING), ("unloading", Trajectory.UNLOADING)):
-        est, on = model.bias_.get(branch), path.branch[0] == code
+    for branch in BRANCHES:
+        est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
         if est is None or on.sum() < 2:
             continue
-        x = path.s[0, on] if branch == "loading" else path.s_max[0] - path.s[0, on]
-        resp = est.predict_responsibilities(model.features(branch, x, path.v[0, on], cond))
+        resp = est.predict_responsibilities(model.features(branch, x, v, cond))
         count += int(np.count_nonzero(np.diff(np.argmax(resp, axis=1))))
     return count
 

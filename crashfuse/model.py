@@ -220,7 +220,7 @@ class FittedModel:
         flags["crush"] = bool(mean_traj.s_max[0] > (1 + _REACH_TOL) * self.x_max("loading"))
         flags["rebound"] = bool(u.size and u.max() > (1 + _REACH_TOL) * self.x_max("unloading"))
         if "state" in self.ranges:
-            flags["state"] = any(state_outside(self.ranges["state"][b], *_path_xv(mean_traj, b)) > STATE_FRACTION
+            flags["state"] = any(state_outside(self.ranges["state"][b], *mean_traj.on_branch(b)[1:]) > STATE_FRACTION
                                  for b in BRANCHES if self.ranges["state"].get(b) is not None)
         flags["any"] = any(flags.values())
         return flags
@@ -450,14 +450,6 @@ def state_outside(table, x, v) -> float:
     i = np.clip(i, 0, len(v_lo) - 1)
     inside &= (v >= v_lo[i]) & (v <= v_hi[i])
     return float(1.0 - inside.mean())
-
-
-def _path_xv(traj, branch: str):
-    """Branch coordinate and velocity of a one-sample rollout while in contact on ``branch``."""
-    code = Trajectory.LOADING if branch == "loading" else Trajectory.UNLOADING
-    on = traj.branch[0] == code
-    x = traj.s[0, on] if branch == "loading" else traj.s_max[0] - traj.s[0, on]
-    return x, traj.v[0, on]
 
 
 def _companions(campaign: Campaign) -> list:

@@ -343,11 +343,9 @@ def _drawn_bias(model, branch, cond, mean: _BranchBias | None, path: Trajectory,
 
 def _path_velocity(branch, path: Trajectory, x) -> np.ndarray:
     """Velocity of the mean rollout as a function of the branch coordinate, at ``x`` (held beyond)."""
-    on = path.branch[0] == (Trajectory.LOADING if branch == "loading" else Trajectory.UNLOADING)
+    on, xb, vb = path.on_branch(branch)
     if not on.any():
         return np.zeros_like(x) if branch == "unloading" else np.full_like(x, path.v[0, 0])
-    xb = path.s[0, on] if branch == "loading" else path.s_max[0] - path.s[0, on]
-    vb = path.v[0, on]
     keep = xb > np.maximum.accumulate(np.r_[-np.inf, xb[:-1]])  # strictly increasing for interp
     return np.interp(x, xb[keep], vb[keep])
 
@@ -360,12 +358,11 @@ def decel_scatter(model, curve, path: Trajectory, cond) -> np.ndarray:
     there for a relative target); 0 after separation and on a branch without a model.
     """
     out = np.zeros(path.time.size)
-    for branch, code in (("loading", Trajectory.LOADING), ("unloading", Trajectory.UNLOADING)):
-        est, on = model.bias_.get(branch), path.branch[0] == code
+    for branch in BRANCHES:
+        est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
         if est is None or not on.any():
             continue
-        x = path.s[0, on] if branch == "loading" else path.s_max[0] - path.s[0, on]
-        sd = est.scatter_std(model.features(branch, x, path.v[0, on], cond))
+        sd = est.scatter_std(model.features(branch, x, v, cond))
         if model.relative:
             sd = sd * bias_scale(curve.loading(x) if branch == "loading" else curve.unloading(x))
         out[on] = sd

@@ -113,3 +113,16 @@ def test_bad_input_is_an_input_error(fn, v0, field):
     with pytest.raises(InputError) as err:
         rollout(fn, v0, DT, 10, n_samples=2)
     assert err.value.field == field
+
+
+def test_on_branch_gives_the_branch_coordinate_of_one_sample():
+    s = np.array([[0.0, 0.2, 0.5, 0.4, 0.1], [0.0, 0.1, 0.2, 0.3, 0.3]])
+    v = np.array([[9.0, 6.0, 0.0, -1.0, -2.0], [9.0, 8.0, 7.0, 6.0, 5.0]])
+    branch = np.array([[0, 0, 1, 1, 2], [0, 0, 0, 0, 0]], dtype=np.int8)
+    traj = Trajectory(np.arange(5) * 1e-3, s, v, np.zeros_like(s), branch, np.array([0.5, 0.3]))
+    on, x, vel = traj.on_branch("unloading")
+    np.testing.assert_array_equal(on, [False, False, True, True, False])
+    np.testing.assert_allclose(x, [0.0, 0.1])  # u = s_max - s
+    np.testing.assert_array_equal(vel, [0.0, -1.0])
+    on, x, vel = traj.on_branch("loading", sample=1)
+    assert on.all() and np.array_equal(x, s[1]) and np.array_equal(vel, v[1])
