@@ -94,7 +94,8 @@ def _world_realism(args) -> int:
 def _world_validate(args) -> int:
     from crashfuse.world.validation import validate
 
-    table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds)
+    sizes = {} if args.n_cae is None else {"n_cae": args.n_cae}
+    table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds, **sizes)
     runs = table.drop_duplicates(["withheld", "strength", "seed"])
     print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with the right first effect -> {args.out}")
     return 0
@@ -317,6 +318,8 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="effects withheld one at a time (the control with none is always added)")
     s.add_argument("--strengths", nargs="+", choices=("realistic", "subtle"), default=["realistic", "subtle"])
     s.add_argument("--seeds", nargs="+", type=_seed, default=[0], help="world seeds (default 0)")
+    s.add_argument("--n-cae", type=_positive, default=None,
+                   help="CAE runs per campaign besides the companions (default: the harness's N_CAE)")
     s.add_argument("--out", required=True, help="output folder for validation.csv and validation.md")
     s.set_defaults(func=_world_validate)
 

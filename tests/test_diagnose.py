@@ -189,7 +189,7 @@ def test_small_validation_matrix(tmp_path):
     """The harness end to end on one effect and the control (the full matrix is a workflow target)."""
     from crashfuse.world.validation import validate
     table = validate(tmp_path, effects=("damping",), strengths=("realistic",), seeds=(0,),
-                     candidates=("damping", "mass"), progress=None)
+                     candidates=("damping", "mass"), progress=None, n_cae=60)
     assert list(table["withheld"]) == ["damping", "none"]
     assert table["first_correct"].all() and (table["spurious"].fillna("") == "").all()
     damping = table.iloc[0]
