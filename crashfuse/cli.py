@@ -92,10 +92,10 @@ def _world_realism(args) -> int:
 
 
 def _world_validate(args) -> int:
-    from crashfuse.world.validation import validate
+    from crashfuse.world.validation import N_CAE, validate
 
-    sizes = {} if args.n_cae is None else {"n_cae": args.n_cae}
-    table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds, **sizes)
+    table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds,
+                     n_cae=args.n_cae or N_CAE)
     runs = table.drop_duplicates(["withheld", "strength", "seed"])
     print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with the right first effect -> {args.out}")
     return 0
