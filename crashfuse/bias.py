@@ -842,6 +842,13 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         Clusters with fewer hard-assigned points are merged into the cluster whose mixture
         mean is nearest (standardised inputs), smallest first. ``None``: three times the
         number of GP parameters (trend + d theta + nugget + sigma^2).
+    pooled : bool
+        With more than one cluster: first fit one GP on every point (the K = 1 model, this
+        model's trend), then the cluster GPs on its residual without a trend, and predict their
+        sum. Where a cluster's few tests say nothing the residual reverts to 0, so the
+        prediction to the pooled GP's, not to the cluster's trend; the test-to-test scatter
+        is the pooled GP's (the residual GPs estimate none). ``False``: the paper's clusters, each
+        GP on its own points' bias.
     random_state : int, RandomState or None
         Seeds the mixture and the GPs.
 
@@ -850,8 +857,10 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
     scaler_ : StandardScaler
         Standardisation of the clustering inputs.
     gmm_ : GaussianMixture
+    pooled_gp_ : KrigingGP or None
+        The GP on every point (``pooled`` with more than one cluster), else None.
     gps_ : list of KrigingGP
-        One per surviving cluster.
+        One per surviving cluster (on the pooled GP's residual when ``pooled_gp_`` is set).
     component_to_gp_ : ndarray of int, shape (n_clusters,)
         Which GP each mixture component's points and responsibility go to.
     n_points_per_cluster_ : ndarray of int, shape (len(gps_),)
@@ -863,7 +872,9 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
                  theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0), n_restarts=2,
                  max_fit_points=300, max_condition_points=None, normalize_y=True, n_init=5,
                  reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None,
-                 theta_max_candidates=THETA_MAX_CANDIDATES, calibrate_variance=True, estimate_scatter=True):
+                 theta_max_candidates=THETA_MAX_CANDIDATES, calibrate_variance=True, estimate_scatter=True,
+                 pooled=False):
+        self.pooled = pooled
         self.theta_max_candidates = theta_max_candidates
         self.calibrate_variance = calibrate_variance
         self.estimate_scatter = estimate_scatter
@@ -883,15 +894,16 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         self.blas_threads = blas_threads
         self.random_state = random_state
 
-    def _gp(self, seed):
-        """An unfitted cluster GP with this model's settings."""
-        return KrigingGP(trend=self.trend, theta_bounds=self.theta_bounds,
+    def _gp(self, seed, trend=None, estimate_scatter=None):
+        """An unfitted GP with this model's settings (``trend`` and ``estimate_scatter`` overridable)."""
+        return KrigingGP(trend=self.trend if trend is None else trend, theta_bounds=self.theta_bounds,
                          nugget_bounds=self.nugget_bounds, n_restarts=self.n_restarts,
                          max_fit_points=self.max_fit_points,
                          max_condition_points=self.max_condition_points,
                          normalize_y=self.normalize_y, blas_threads=self.blas_threads,
                          random_state=seed, theta_max_candidates=self.theta_max_candidates,
-                         calibrate_variance=self.calibrate_variance, estimate_scatter=self.estimate_scatter)
+                         calibrate_variance=self.calibrate_variance,
+                         estimate_scatter=self.estimate_scatter if estimate_scatter is None else estimate_scatter)
 
     def _min_points(self, d):
         """Smallest cluster that keeps its own GP."""
@@ -938,7 +950,12 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         n_gps = self.component_to_gp_.max() + 1
         self.n_points_per_cluster_ = np.bincount(self.labels_, minlength=n_gps)
         groups = None if groups is None else np.asarray(groups)
-        self.gps_ = [self._gp(rng.randint(_SEED_MAX)).fit(
+        self.pooled_gp_ = None
+        if self.pooled and n_gps > 1:
+            self.pooled_gp_ = self._gp(rng.randint(_SEED_MAX)).fit(X, y, groups)
+            y = y - self.pooled_gp_.predict(X)
+        residual = self.pooled_gp_ is not None
+        self.gps_ = [self._gp(rng.randint(_SEED_MAX), *(("zero", False) if residual else ())).fit(
             X[self.labels_ == g], y[self.labels_ == g], None if groups is None else groups[self.labels_ == g])
             for g in range(n_gps)]
         return self
@@ -1018,9 +1035,11 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         -------
         mean : ndarray, shape (m,)
         std : ndarray, shape (m,), only if ``return_std``
+            With a pooled GP, its variance is added (the two GPs are independent).
         """
         X = check_array(X)
         w = self._weights(X)
+        pooled = self._pooled(X, return_std)
         mean, second = np.zeros(len(X)), np.zeros(len(X))
         for g, gp in enumerate(self.gps_):
             use = w[:, g] > 0
@@ -1033,13 +1052,20 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
             mean[use] += w[use, g] * mu
             second[use] += w[use, g] * (sd**2 + mu**2)
         if not return_std:
-            return mean
-        return mean, np.sqrt(np.clip(second - mean**2, 0.0, None))
+            return mean + pooled
+        return mean + pooled[0], np.sqrt(np.clip(second - mean**2, 0.0, None) + pooled[1] ** 2)
+
+    def _pooled(self, X, return_std=False):
+        """The pooled GP's mean (and std) at ``X``; zeros without one."""
+        if self.pooled_gp_ is None:
+            return (np.zeros(len(X)), np.zeros(len(X))) if return_std else np.zeros(len(X))
+        return self.pooled_gp_.predict(X, return_std=return_std)
 
     def scatter_std(self, X):
         """Test-to-test scatter std at ``X`` (y units): what a new test adds to the latent band.
 
-        ``select``: the selected GP's ``sqrt(scatter_var_)``; ``blend``: ``sqrt(sum_k w_k s_k^2)``.
+        ``select``: the selected GP's ``sqrt(scatter_var_)``; ``blend``: ``sqrt(sum_k w_k s_k^2)``;
+        with a pooled GP, the pooled GP's.
 
         Parameters
         ----------
@@ -1049,6 +1075,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         -------
         ndarray, shape (m,)
         """
+        if self.pooled_gp_ is not None:
+            return np.full(len(X), np.sqrt(self.pooled_gp_.scatter_var_))
         if not all(hasattr(gp, "scatter_var_") for gp in self.gps_):
             raise InputError("this bias model was fitted before the test-to-test scatter existed: refit it, or "
                              "ask for the latent band (--band latent)", field="band")
@@ -1062,7 +1090,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         Each GP is drawn jointly (no nugget) on the points where its weight is non-zero;
         ``select`` takes the selected GP's draw at each point, ``blend`` the
         responsibility-weighted sum of the independent per-GP draws (whose spread is
-        ``sqrt(sum_k w_k^2 s_k^2)``, narrower than the mixture std of ``predict``).
+        ``sqrt(sum_k w_k^2 s_k^2)``, narrower than the mixture std of ``predict``). A pooled
+        GP's joint draw is added.
 
         Parameters
         ----------
@@ -1083,4 +1112,6 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
             seed = rng.randint(_SEED_MAX)  # drawn for every GP so seeds don't depend on X
             if use.any():
                 out[:, use] += w[use, g] * gp.sample_functions(X[use], n_samples, seed)
+        if self.pooled_gp_ is not None:
+            out += self.pooled_gp_.sample_functions(X, n_samples, rng.randint(_SEED_MAX))
         return out

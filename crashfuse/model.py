@@ -27,7 +27,7 @@ from crashfuse.io.campaign import Campaign
 from crashfuse.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity
 from crashfuse.surrogate import CAECurve, CAESurrogate
 
-FORMAT = 1
+FORMAT = 2  # 2: GMMGPBias gained the pooled GP
 # What the bias GPs learn by default: the paper's absolute bias; in the state mode the bias relative
 # to the CAE deceleration (a rate effect scales the force), chosen by grouped leave-one-test-out
 # density on the training tests (docs/method-rollout.md).
@@ -37,6 +37,10 @@ DEFAULT_TARGET = {"paper": "absolute", "state": "relative"}
 # sparser cluster - the correction fades to zero and the prediction to the CAE model's
 # (docs/method-rollout.md, "Trend").
 DEFAULT_TREND = {"paper": "constant", "state": "zero"}
+# Clusters beyond K = 1: the paper's independent cluster GPs, or (state mode) cluster GPs on the
+# residual of one pooled GP, so that a sparse cluster falls back on the pooled model instead of on
+# its few tests (docs/bias-model.md, "Pooled clusters").
+DEFAULT_POOLED = {"paper": False, "state": True}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
 _MATCH_RTOL = 1e-6  # a condition "is" a test's when v0 and both masses agree to this
 _REACH_TOL = 0.02  # crush or rebound up to 2 % beyond the bias data is not flagged (thinning, rounding)
@@ -72,7 +76,7 @@ class FittedModel:
         Per branch; None where the training tests gave no points on that branch (zero bias).
     settings : dict
         ``k, inputs, assignment, extra_inputs, n_grid, use_companion, random_state, holdout, target,
-        trend, weights, velocity, bias_params`` (the arguments of :func:`fit_model`).
+        trend, pooled, weights, velocity, bias_params`` (the arguments of :func:`fit_model`).
     columns : dict of str to tuple of str
         Bias input columns per branch, in order (:func:`crashfuse.projection.bias_columns`).
     training_tests : list of str
@@ -278,7 +282,8 @@ def _load(kind: str, cls, path):
 def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, assignment: str = "select",
               extra_inputs: bool = False, n_grid: int | None = 200, use_companion: bool = False,
               random_state: int = 0, surrogate: CAESurrogate | None = None, target: str | None = None,
-              trend: str | None = None, weights: bool = True, velocity: str = "sqrt", **bias_params) -> FittedModel:
+              trend: str | None = None, pooled: bool | None = None, weights: bool = True, velocity: str = "sqrt",
+              **bias_params) -> FittedModel:
     """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
 
     Parameters
@@ -313,6 +318,10 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     trend : {"zero", "constant", "linear"} or None
         The GPs' trend (:class:`crashfuse.bias.KrigingGP`). None: ``DEFAULT_TREND[inputs]``
         (``paper`` as published, constant; ``state`` zero).
+    pooled : bool or None
+        With K > 1, fit the cluster GPs on the residual of one GP over all the fold's bias data
+        (:class:`GMMGPBias` ``pooled``). None: ``DEFAULT_POOLED[inputs]`` (``paper`` as
+        published, no; ``state`` yes).
     weights : bool
         Axle masses among the bias inputs.
     velocity : {"linear", "sqrt"}
@@ -334,6 +343,7 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     _check_settings(k, inputs, assignment, n_grid, random_state)
     target = DEFAULT_TARGET[inputs] if target is None else target
     trend = DEFAULT_TREND[inputs] if trend is None else trend
+    pooled = DEFAULT_POOLED[inputs] if pooled is None else bool(pooled)
     if not campaign.cae:
         raise InputError("the campaign has no CAE runs: the method corrects a CAE model", campaign.root, "source")
     held = _holdout(campaign, holdout)
@@ -345,11 +355,13 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     data = bias_data(campaign, train, inputs, extra_inputs, n_grid, surrogate=surrogate, use_companion=True,
                      target=target, weights=weights, velocity=velocity)
     seeds = np.random.RandomState(random_state).randint(_SEED_MAX, size=len(BRANCHES))
-    bias = {b: _fit_branch(data, b, k, assignment, int(seed), {"trend": trend, **bias_params}, campaign.root)
+    bias = {b: _fit_branch(data, b, k, assignment, int(seed), {"trend": trend, "pooled": pooled, **bias_params},
+                            campaign.root)
             for b, seed in zip(BRANCHES, seeds)}
     settings = dict(k=int(k), inputs=inputs, assignment=assignment, extra_inputs=bool(extra_inputs),
                     n_grid=n_grid, use_companion=bool(use_companion), random_state=random_state,
-                    holdout=sorted(held), target=target, trend=trend, weights=bool(weights), velocity=velocity,
+                    holdout=sorted(held), target=target, trend=trend, pooled=pooled, weights=bool(weights),
+                    velocity=velocity,
                     bias_params=dict(bias_params))
     return FittedModel(
         surrogate=surrogate, bias_=bias, settings=settings,

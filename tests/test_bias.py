@@ -476,3 +476,68 @@ def test_zero_trend_reverts_to_zero_far_from_the_data():
     assert zero.predict(inside)[0] == pytest.approx(3.0 + np.sin(2.6), abs=1e-3)
     # far away the latent variance is sigma^2 alone (no trend-estimation term)
     assert zero.predict(far, return_std=True)[1][0] == pytest.approx(np.sqrt(zero.sigma2_), rel=1e-9)
+
+
+# ------------------------------------------------------------------ pooled clusters
+@pytest.fixture(scope="module")
+def pooled_regimes():
+    X, y = _two_regime_data()
+    groups = np.repeat(np.arange(6), 40)
+    model = GMMGPBias(n_clusters=2, cluster_inputs=[1, 2], pooled=True, trend="constant",
+                      random_state=0).fit(X, y, groups)
+    return X, y, groups, model
+
+
+def test_pooled_clusters_model_the_residual_of_one_gp_over_all_points(pooled_regimes):
+    X, y, groups, model = pooled_regimes
+    pooled = model.pooled_gp_
+    assert pooled.trend == "constant" and pooled.n_condition_ == len(y)
+    np.testing.assert_array_equal(pooled.predict(X), KrigingGP(**{
+        k: v for k, v in pooled.get_params().items()}).fit(X, y, groups).predict(X))
+    assert all(gp.trend == "zero" and gp.scatter_var_ == 0.0 for gp in model.gps_)
+    pick = np.argmax(model.predict_responsibilities(X), axis=1)
+    mean, std = model.predict(X, return_std=True)
+    p_mean, p_std = pooled.predict(X, return_std=True)
+    for g, gp in enumerate(model.gps_):
+        rows = pick == g
+        r_mean, r_std = gp.predict(X[rows], return_std=True)
+        # each residual GP is fitted on its cluster's residual of the pooled mean
+        np.testing.assert_allclose(r_mean, (y - pooled.predict(X))[rows], atol=0.05 * np.abs(y).max())
+        np.testing.assert_allclose(mean[rows], p_mean[rows] + r_mean, rtol=1e-12)
+        np.testing.assert_allclose(std[rows], np.hypot(p_std[rows], r_std), rtol=1e-10)
+    np.testing.assert_allclose(model.scatter_std(X), np.sqrt(pooled.scatter_var_))
+    assert pooled.scatter_var_ > 0.0
+
+
+def test_pooled_draws_add_the_pooled_gp_draw_and_have_the_predicted_width(pooled_regimes):
+    _, _, _, model = pooled_regimes
+    grid = np.column_stack([np.linspace(0, 0.7, 50), np.full(50, 12.0), np.full(50, 1120.0)])
+    mean, std = model.predict(grid, return_std=True)
+    draws = model.sample_functions(grid, 3000, random_state=1)
+    np.testing.assert_allclose(draws.std(axis=0), std, rtol=0.07)
+    assert np.all(np.abs(draws.mean(axis=0) - mean) < 5 * std / np.sqrt(3000))
+    np.testing.assert_array_equal(draws, model.sample_functions(grid, 3000, random_state=1))
+
+
+def test_pooled_prediction_falls_back_on_the_pooled_gp_far_from_the_clusters():
+    """Where the residual GPs have no data they revert to 0: the prediction is the pooled model's,
+    not a cluster's level as with the paper's independent cluster GPs."""
+    X, y = _two_regime_data()
+    groups = np.repeat(np.arange(6), 40)
+    far = np.column_stack([np.linspace(5.0, 6.0, 5), np.full(5, 40.0), np.full(5, 1400.0)])  # beyond every s
+    pooled = GMMGPBias(n_clusters=2, cluster_inputs=[1, 2], pooled=True, trend="constant",
+                       random_state=0).fit(X, y, groups)
+    np.testing.assert_allclose(pooled.predict(far), pooled.pooled_gp_.predict(far), atol=1e-6 * np.abs(y).max())
+    apart = GMMGPBias(n_clusters=2, cluster_inputs=[1, 2], trend="constant", random_state=0).fit(X, y, groups)
+    picked = apart.gps_[np.argmax(apart.predict_responsibilities(far)[0])]
+    np.testing.assert_allclose(apart.predict(far), picked.beta_[0], atol=1e-6 * np.abs(y).max())
+
+
+def test_pooled_with_one_cluster_is_the_plain_model():
+    X, y = _two_regime_data()
+    groups = np.repeat(np.arange(6), 40)
+    plain = GMMGPBias(n_clusters=1, random_state=3).fit(X, y, groups)
+    pooled = GMMGPBias(n_clusters=1, pooled=True, random_state=3).fit(X, y, groups)
+    assert pooled.pooled_gp_ is None
+    np.testing.assert_array_equal(pooled.predict(X), plain.predict(X))
+    np.testing.assert_array_equal(pooled.sample_functions(X[:30], 5, 2), plain.sample_functions(X[:30], 5, 2))

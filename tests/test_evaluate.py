@@ -14,7 +14,7 @@ from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import write_campaign
 from crashfuse.iso18571 import iso_score
-from crashfuse.model import fit_model
+from crashfuse.model import fit_model, load_model
 from crashfuse.report import read_fold_json
 from crashfuse.rollout import predict
 from crashfuse.surrogate import CAESurrogate
@@ -182,6 +182,10 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     assert set(iso["test_id"]) == {"T08"} and set(iso["model"]) == {"CAE", "K1"}
     assert sorted(p.name for p in (out / "paper" / "K1" / "T08").iterdir()) == ["T08.fold.json", "T08.png",
                                                                                "T08_prediction.csv"]
+    model = tmp_path / "model.pkl"
+    assert main(["fit", str(folder), "--k", "2", "--inputs", "paper", "--pooled", "--n-grid", "40",
+                 "--out", str(model)]) == 0
+    assert load_model(model).settings["pooled"] is True  # paper's default is False
     assert main(["evaluate", str(folder), "--k", "0", "--out", str(tmp_path / "x")]) == 2
     assert main(["evaluate", str(folder), "--k", "1", "--holdout", "C0001", "--out", str(tmp_path / "x")]) == 2
     assert main(["evaluate", str(folder), "--k", "1", "--surrogate", str(folder / "conditions.csv"),

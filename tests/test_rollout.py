@@ -381,6 +381,18 @@ def test_each_input_mode_has_its_default_trend(campaign, surrogate, inputs, tren
     assert all(gp.trend == "linear" for gp in other.bias_["loading"].gps_)
 
 
+
+@pytest.mark.parametrize(("inputs", "pooled"), [("paper", False), ("state", True)])
+def test_each_input_mode_has_its_default_clusters(campaign, surrogate, inputs, pooled):
+    """paper: the published independent cluster GPs; state: cluster GPs on a pooled GP's residual."""
+    model = fit_model(campaign, 2, inputs=inputs, surrogate=surrogate, min_cluster_points=10, **FAST)
+    est = model.bias_["loading"]
+    assert model.settings["pooled"] is pooled and est.pooled is pooled
+    assert (est.pooled_gp_ is not None) is (pooled and len(est.gps_) > 1)
+    other = fit_model(campaign, 2, inputs=inputs, surrogate=surrogate, pooled=not pooled, min_cluster_points=10,
+                      **FAST)
+    assert other.bias_["loading"].pooled is not pooled
+
 def test_rollout_rebound_is_sought_where_pulse_metrics_seeks_it():
     # A long record whose velocity keeps falling after 200 ms: only the rebound inside the
     # metrics' window counts, as in crashfuse.metrics.pulse_metrics.
