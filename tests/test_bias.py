@@ -318,14 +318,17 @@ def test_blend_is_mixture_of_cluster_predictions(two_regimes):
     np.testing.assert_allclose(blend.predict(X), select.predict(X), atol=1e-6 * np.abs(y).max())
 
 
-def test_mixture_draws_have_predicted_width(two_regimes):
-    _, _, model = two_regimes
+def _assert_draws_have_predicted_width(model):
     grid = np.column_stack([np.linspace(0, 0.7, 50), np.full(50, 12.0), np.full(50, 1120.0)])
     mean, std = model.predict(grid, return_std=True)
     draws = model.sample_functions(grid, 3000, random_state=1)
     np.testing.assert_allclose(draws.std(axis=0), std, rtol=0.07)
     assert np.all(np.abs(draws.mean(axis=0) - mean) < 5 * std / np.sqrt(3000))
     np.testing.assert_array_equal(draws, model.sample_functions(grid, 3000, random_state=1))
+
+
+def test_mixture_draws_have_predicted_width(two_regimes):
+    _assert_draws_have_predicted_width(two_regimes[2])
 
 
 def test_small_clusters_merge_not_nan():
@@ -510,13 +513,7 @@ def test_pooled_clusters_model_the_residual_of_one_gp_over_all_points(pooled_reg
 
 
 def test_pooled_draws_add_the_pooled_gp_draw_and_have_the_predicted_width(pooled_regimes):
-    _, _, _, model = pooled_regimes
-    grid = np.column_stack([np.linspace(0, 0.7, 50), np.full(50, 12.0), np.full(50, 1120.0)])
-    mean, std = model.predict(grid, return_std=True)
-    draws = model.sample_functions(grid, 3000, random_state=1)
-    np.testing.assert_allclose(draws.std(axis=0), std, rtol=0.07)
-    assert np.all(np.abs(draws.mean(axis=0) - mean) < 5 * std / np.sqrt(3000))
-    np.testing.assert_array_equal(draws, model.sample_functions(grid, 3000, random_state=1))
+    _assert_draws_have_predicted_width(pooled_regimes[3])
 
 
 def test_pooled_prediction_falls_back_on_the_pooled_gp_far_from_the_clusters():
