@@ -5,7 +5,7 @@ the CAE surrogate G_a, the companion CAE runs of the campaign's tests (for ``use
 the loading and unloading bias models, the training ranges (for extrapolation flags), the
 settings, the campaign's content hash and the crashfuse version.
 
-Model (and shared surrogate) files are pickles of a versioned payload (``FORMAT``, with the
+Model (and shared surrogate) files are pickles of a versioned payload (``FORMAT`` of its kind, with the
 crashfuse version): trusted input only, like any pickle. :func:`load_model` /
 :func:`load_surrogate` refuse another format version or another kind of object and name the file.
 """
@@ -27,7 +27,8 @@ from crashfuse.io.campaign import Campaign
 from crashfuse.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity
 from crashfuse.surrogate import CAECurve, CAESurrogate
 
-FORMAT = 2  # 2: GMMGPBias gained the pooled GP
+# File format version per kind: a change to one kind's objects leaves the other's files valid.
+FORMAT = {"model": 2, "surrogate": 1}  # model 2: GMMGPBias gained the pooled GP
 # What the bias GPs learn by default: the paper's absolute bias; in the state mode the bias relative
 # to the CAE deceleration (a rate effect scales the force), chosen by grouped leave-one-test-out
 # density on the training tests (docs/method-rollout.md).
@@ -257,7 +258,7 @@ def load_surrogate(path: str | os.PathLike) -> CAESurrogate:
 
 def _save(kind: str, obj, path) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        pickle.dump({"format": FORMAT, kind: obj, "version": crashfuse.__version__}, fh,
+        pickle.dump({"format": FORMAT[kind], kind: obj, "version": crashfuse.__version__}, fh,
                     protocol=pickle.HIGHEST_PROTOCOL)
 
 
@@ -273,8 +274,8 @@ def _load(kind: str, cls, path):
         raise InputError(f"not a crashfuse {kind} file ({type(err).__name__})", path) from None
     if not isinstance(payload, dict) or not isinstance(payload.get(kind), cls):
         raise InputError(f"not a crashfuse {kind} file", path)
-    if payload.get("format") != FORMAT:
-        raise InputError(f"{kind} file format {payload.get('format')!r}, this crashfuse reads {FORMAT}: refit",
+    if payload.get("format") != FORMAT[kind]:
+        raise InputError(f"{kind} file format {payload.get('format')!r}, this crashfuse reads {FORMAT[kind]}: refit",
                          path, "format")
     return payload[kind]
 

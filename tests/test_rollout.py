@@ -293,6 +293,20 @@ def test_model_file_errors(tmp_path, model):
     assert load_model(tmp_path / "m.pkl").campaign_hash == model.campaign_hash
 
 
+def test_file_formats_are_versioned_per_kind(tmp_path, model):
+    """A model file of an older format is refused (refit); the surrogate's format moves on its own."""
+    import pickle
+
+    from crashfuse.model import FORMAT, load_surrogate, save_surrogate
+    old = tmp_path / "old.pkl"
+    old.write_bytes(pickle.dumps({"format": FORMAT["model"] - 1, "model": model}))
+    with pytest.raises(InputError, match="model file format 1, this crashfuse reads 2: refit"):
+        load_model(old)
+    save_surrogate(model.surrogate, tmp_path / "s.pkl")
+    assert pickle.loads((tmp_path / "s.pkl").read_bytes())["format"] == FORMAT["surrogate"] == 1
+    assert isinstance(load_surrogate(tmp_path / "s.pkl"), type(model.surrogate))
+
+
 def test_cli_fit_predict_round_trip(tmp_path, capsys):
     folder = generate(tmp_path / "campaign", resolve("paper"), seed=1, n_cae=12)
     model_file = tmp_path / "model.pkl"
