@@ -954,8 +954,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         if self.pooled and n_gps > 1:
             self.pooled_gp_ = self._gp(rng.randint(_SEED_MAX)).fit(X, y, groups)
             y = y - self.pooled_gp_.predict(X)
-        residual = self.pooled_gp_ is not None
-        self.gps_ = [self._gp(rng.randint(_SEED_MAX), *(("zero", False) if residual else ())).fit(
+        residual = {"trend": "zero", "estimate_scatter": False} if self.pooled_gp_ is not None else {}
+        self.gps_ = [self._gp(rng.randint(_SEED_MAX), **residual).fit(
             X[self.labels_ == g], y[self.labels_ == g], None if groups is None else groups[self.labels_ == g])
             for g in range(n_gps)]
         return self
