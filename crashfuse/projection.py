@@ -246,6 +246,31 @@ def column_velocity(column: str, values) -> np.ndarray:
     return values if column == V_COL else np.sign(values) * values**2
 
 
+def nominal_time(columns: Sequence[str], X) -> np.ndarray:
+    """Time since contact (s) of loading-branch ``state`` inputs, ``2 s / (v0 + v)``.
+
+    Exact at constant deceleration; it follows the slowing car where ``s / v0`` would not.
+
+    Parameters
+    ----------
+    columns : sequence of str
+        The inputs' column names: ``x_m``, a velocity column and ``v0_mps`` among them.
+    X : array_like, shape (m, len(columns))
+
+    Returns
+    -------
+    ndarray, shape (m,)
+    """
+    X = np.asarray(X, dtype=float)
+    vcol = next((c for c in columns if c in VELOCITY.values()), None)
+    if vcol is None or X_COL not in columns or V0_COL not in columns:
+        raise InputError(f"the time since contact needs {X_COL}, a velocity and {V0_COL} among the bias inputs, "
+                         f"got {tuple(columns)}", field="inputs")
+    col = list(columns).index
+    speed = X[:, col(V0_COL)] + column_velocity(vcol, X[:, col(vcol)])
+    return 2.0 * X[:, col(X_COL)] / np.maximum(speed, np.finfo(float).tiny)
+
+
 def bias_scale(a_cae) -> np.ndarray:
     """What a relative bias multiplies: the CAE deceleration floored at ``SCALE_FLOOR`` (m/s^2).
 

@@ -9,7 +9,7 @@ from sklearn.base import clone
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, DotProduct, WhiteKernel
 
-from crashfuse.bias import GMMGPBias, KrigingGP, TooFewPointsError
+from crashfuse.bias import GMMGPBias, KrigingGP, OnsetCorrectedBias, TooFewPointsError
 
 
 def _oracle_loglik(eta, Z, u, trend):
@@ -400,6 +400,31 @@ def test_grouped_cv_matches_brute_force_refits():
     assert gp.grouped_cv_log_density() == pytest.approx(total / len(u), rel=1e-6)
 
 
+@pytest.mark.parametrize("trend", ["zero", "constant"])
+def test_grouped_residuals_match_conditioning_on_the_other_groups(trend):
+    """Each group's residual is y minus the prediction of the GP conditioned on the other groups
+    alone (same theta, nugget; the trend re-estimated)."""
+    X, y, groups = _grouped_data()
+    gp = KrigingGP(trend=trend, max_fit_points=None, random_state=0).fit(X, y, groups)
+    Z, u = _standardised(gp, X, y)
+    if trend == "zero":
+        u = y / y.std()  # a zero-mean prior is not centred
+    K = np.exp(-(((Z[:, None, :] - Z[None, :, :]) ** 2) * gp.theta_).sum(-1)) + gp.nugget_ * np.eye(len(u))
+    H = np.ones((len(u), int(trend == "constant")))
+    expected = np.empty(len(u))
+    for g in np.unique(groups):
+        out, keep = groups == g, groups != g
+        Kk = K[np.ix_(keep, keep)]
+        beta = (np.linalg.solve(H[keep].T @ np.linalg.solve(Kk, H[keep]), H[keep].T @ np.linalg.solve(Kk, u[keep]))
+                if H.shape[1] else np.zeros(0))
+        mean = H[out] @ beta + K[np.ix_(out, keep)] @ np.linalg.solve(Kk, u[keep] - H[keep] @ beta)
+        expected[out] = u[out] - mean
+    scale = y.std()
+    np.testing.assert_allclose(gp.grouped_residuals(X, y, groups), expected * scale, atol=1e-8 * scale)
+    with pytest.raises(ValueError, match="two groups"):
+        gp.grouped_residuals(X, y, np.zeros(len(y)))
+
+
 def test_theta_bound_is_chosen_by_grouped_cv():
     X, y, groups = _grouped_data(seed=3)
     gp = KrigingGP(theta_max_candidates=(0.1, 1e3), random_state=0).fit(X, y, groups)
@@ -537,3 +562,63 @@ def test_pooled_with_one_cluster_is_the_plain_model():
     assert pooled.pooled_gp_ is None
     np.testing.assert_array_equal(pooled.predict(X), plain.predict(X))
     np.testing.assert_array_equal(pooled.sample_functions(X[:30], 5, 2), plain.sample_functions(X[:30], 5, 2))
+
+
+# --------------------------------------------------------------------------- onset correction
+def _onset_data(speeds=(4.0, 6.0, 8.0, 10.0, 12.0, 14.0), per=60):
+    """Bias = a smooth function of (x, v0) + a ringing locked in time t = x / v0 (gone by t = 1).
+
+    A GP over (x, v0) moves the ringing with speed in x; the time-locked part is what the
+    onset correction is for.
+    """
+    rows = []
+    for v0 in speeds:
+        x = np.linspace(0.0, 1.6 * v0, per)
+        t = x / v0
+        y = 0.3 * np.sin(x / 8.0) + 0.02 * v0 + np.sin(2 * np.pi * t / 0.4) * np.exp(-3.0 * t) * (t < 1.0)
+        rows.append((np.column_stack([x, np.full(per, v0)]), y, np.full(per, v0)))
+    X, y, g = (np.concatenate(c) for c in zip(*rows))
+    return X, y, g
+
+
+def _time(X):
+    return X[:, 0] / X[:, 1]
+
+
+@pytest.fixture(scope="module")
+def onset_model():
+    X, y, groups = _onset_data()
+    base = GMMGPBias(n_clusters=1, trend="zero", random_state=0)
+    return OnsetCorrectedBias(base, _time, window=(1.0, 1.3), random_state=0).fit(X, y, groups)
+
+
+def test_onset_correction_learns_the_time_locked_error_of_the_base_model(onset_model):
+    """At a new speed the corrected model misses the ringing far less than its base model."""
+    X, y, _ = _onset_data(speeds=(9.0,))
+    early = _time(X) < 1.0
+    base_err = np.abs(onset_model.base_.predict(X) - y)[early].mean()
+    err = np.abs(onset_model.predict(X) - y)[early].mean()
+    assert err < 0.5 * base_err
+    # the correction GP learned the base model's leave-one-test-out residuals over time alone
+    assert onset_model.onset_gp_.n_features_in_ == 1 and onset_model.onset_gp_.trend == "zero"
+
+
+def test_onset_correction_fades_out_and_leaves_bands_to_the_base_model(onset_model):
+    X, _, _ = _onset_data(speeds=(9.0,))
+    late = _time(X) >= 1.3
+    mean, std = onset_model.predict(X, return_std=True)
+    base_mean, base_std = onset_model.base_.predict(X, return_std=True)
+    np.testing.assert_array_equal(mean[late], base_mean[late])
+    np.testing.assert_array_equal(std, base_std)
+    np.testing.assert_array_equal(onset_model.scatter_std(X), onset_model.base_.scatter_std(X))
+    draws = onset_model.sample_functions(X, 4, random_state=3)
+    np.testing.assert_allclose(draws, onset_model.base_.sample_functions(X, 4, random_state=3)
+                               + onset_model.correction(X), rtol=1e-12)
+    assert onset_model.gps_ is onset_model.base_.gps_
+
+
+def test_onset_correction_needs_three_tests_in_its_window():
+    X, y, groups = _onset_data(speeds=(4.0, 6.0))
+    model = OnsetCorrectedBias(GMMGPBias(trend="zero", random_state=0), _time, window=(1.0, 1.3)).fit(X, y, groups)
+    assert model.onset_gp_ is None
+    np.testing.assert_array_equal(model.predict(X), model.base_.predict(X))

@@ -9,7 +9,7 @@ from crashfuse.domain import displacement_branches
 from crashfuse.dynamics import rollout
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
-from crashfuse.projection import bias_columns, bias_data, bias_inputs, project_branch, thin
+from crashfuse.projection import bias_columns, bias_data, bias_inputs, nominal_time, project_branch, thin
 from crashfuse.pulse import Pulse
 from crashfuse.surrogate import CAECurve, CAESurrogate
 from crashfuse.world.generate import build
@@ -256,3 +256,15 @@ def test_sqrt_velocity_column_round_trips(cae):
     np.testing.assert_allclose(bias_inputs(root.loading.columns, [0.1], [-4.0], 1.0, 1.0, 1.0)[0, 1], -2.0)
     with pytest.raises(InputError, match="velocity"):
         bias_columns("state", velocity="log")
+
+
+@pytest.mark.parametrize("velocity", ["linear", "sqrt"])
+def test_nominal_time_is_exact_at_constant_deceleration(velocity):
+    v0, a = 15.0, 200.0  # m/s, m/s^2
+    t = np.linspace(0.0, 0.07, 8)
+    s, v = v0 * t - 0.5 * a * t**2, v0 - a * t
+    columns = bias_columns("state", velocity=velocity)
+    X = bias_inputs(columns, s, v, v0, 900.0, 700.0)
+    np.testing.assert_allclose(nominal_time(columns, X), t, atol=1e-12)
+    with pytest.raises(InputError, match="velocity"):
+        nominal_time(bias_columns("paper"), bias_inputs(bias_columns("paper"), s, None, v0, 900.0, 700.0))
