@@ -146,7 +146,7 @@ def fold_fits(campaign, surrogate, k, holdout, n_grid, inputs="state", full_cap=
 
 def _sizes(model) -> tuple[int, int, int]:
     """Bias points fitted, largest cluster and most points conditioned on, over both branches."""
-    fitted = [est for est in model.bias_.values() if est is not None]
+    fitted = [getattr(est, "base_", est) for est in model.bias_.values() if est is not None]  # past the onset correction
     clusters = np.concatenate([est.n_points_per_cluster_ for est in fitted])
     cond = max(gp.n_condition_ for est in fitted for gp in est.gps_)
     return int(clusters.sum()), int(clusters.max()), int(cond)

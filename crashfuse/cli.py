@@ -108,7 +108,7 @@ def _fit(args) -> int:
     campaign = read_campaign(args.campaign)
     model = fit_model(campaign, args.k, inputs=args.inputs, holdout=args.holdout, assignment=args.assignment,
                       extra_inputs=args.extra_inputs, n_grid=args.n_grid, use_companion=args.use_companion,
-                      random_state=args.seed, trend=args.trend, pooled=args.pooled)
+                      random_state=args.seed, trend=args.trend, pooled=args.pooled, onset=args.onset)
     model.save(args.out)
     gps = {b: 0 if est is None else len(est.gps_) for b, est in model.bias_.items()}
     print(f"wrote {args.out}: K={args.k} {args.inputs} inputs, {len(model.training_tests)} training tests, "
@@ -162,7 +162,7 @@ def _evaluate(args) -> int:
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
                       holdout=args.holdout, use_companion=args.use_companion, assignment=args.assignment,
                       extra_inputs=args.extra_inputs, n_grid=args.n_grid, band=args.band, trend=args.trend,
-                      pooled=args.pooled)
+                      pooled=args.pooled, onset=args.onset)
     summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
     print(summary.mean().round(3).to_string())
     return 0
@@ -254,6 +254,9 @@ def _add_method_options(s) -> None:
     s.add_argument("--pooled", action=argparse.BooleanOptionalAction, default=None,
                    help="with K > 1, cluster GPs on the residual of one pooled GP (default: the input mode's, "
                         "paper no, state yes)")
+    s.add_argument("--onset", action=argparse.BooleanOptionalAction, default=None,
+                   help="correct the bias model's held-out error over the time since contact in the first 22 ms "
+                        "(state inputs only; default: on for state)")
 
 
 # The real test sits beside the repository (../shared), never inside it.

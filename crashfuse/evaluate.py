@@ -107,8 +107,9 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         band's coverage is recorded either way.
     **fit_kwargs
         Passed to :func:`crashfuse.model.fit_model` (``assignment``, ``extra_inputs``, ``n_grid``,
-        ``use_companion``, ``target``, ``weights``, ``velocity``, and :class:`crashfuse.bias.GMMGPBias` settings
-        such as ``theta_max_candidates`` or ``calibrate_variance``).
+        ``use_companion``, ``target``, ``weights``, ``velocity``, ``pooled``, ``onset`` - the state folds'
+        only: the paper inputs carry no time - and :class:`crashfuse.bias.GMMGPBias` settings such as
+        ``theta_max_candidates`` or ``calibrate_variance``).
 
     Returns
     -------
@@ -198,6 +199,8 @@ def _load_shared(path):
 def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, band, fit_kwargs) -> dict:
     """Fit without ``test_id``, predict its condition, rate and measure the band coverage."""
     t0 = time.perf_counter()
+    if mode != "state":
+        fit_kwargs = {key: value for key, value in fit_kwargs.items() if key != "onset"}
     model = fit_model(campaign, k, inputs=mode, holdout=test_id, random_state=random_state, surrogate=surrogate,
                       **fit_kwargs)
     t1 = time.perf_counter()

@@ -13,22 +13,23 @@ crashfuse version): trusted input only, like any pickle. :func:`load_model` /
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import pickle
 
 import numpy as np
 
 import crashfuse
-from crashfuse.bias import _SEED_MAX, GMMGPBias, TooFewPointsError
+from crashfuse.bias import _SEED_MAX, GMMGPBias, OnsetCorrectedBias, TooFewPointsError
 from crashfuse.dynamics import Trajectory
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
-from crashfuse.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity
+from crashfuse.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity, nominal_time
 from crashfuse.surrogate import CAECurve, CAESurrogate
 
 # File format version per kind: a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 2, "surrogate": 1}  # model 2: GMMGPBias gained the pooled GP
+FORMAT = {"model": 3, "surrogate": 1}  # model 2: GMMGPBias gained the pooled GP; 3: the onset correction
 # What the bias GPs learn by default: the paper's absolute bias; in the state mode the bias relative
 # to the CAE deceleration (a rate effect scales the force), chosen by grouped leave-one-test-out
 # density on the training tests (docs/method-rollout.md).
@@ -42,6 +43,11 @@ DEFAULT_TREND = {"paper": "constant", "state": "zero"}
 # residual of one pooled GP, so that a sparse cluster falls back on the pooled model instead of on
 # its few tests (docs/bias-model.md, "Pooled clusters").
 DEFAULT_POOLED = {"paper": False, "state": True}
+# The state mode's loading-branch bias also corrects its own held-out error over the time since
+# contact in the first 15-22 ms, where onset transients locked in time move with speed in s
+# (:class:`crashfuse.bias.OnsetCorrectedBias`; docs/bias-model.md, "Onset correction"). The
+# paper mode has no velocity, hence no time.
+DEFAULT_ONSET = {"paper": False, "state": True}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
 _MATCH_RTOL = 1e-6  # a condition "is" a test's when v0 and both masses agree to this
 _REACH_TOL = 0.02  # crush or rebound up to 2 % beyond the bias data is not flagged (thinning, rounding)
@@ -73,11 +79,12 @@ class FittedModel:
     ----------
     surrogate : CAESurrogate
         Fitted on the campaign's CAE runs only.
-    bias_ : dict of str to GMMGPBias or None
-        Per branch; None where the training tests gave no points on that branch (zero bias).
+    bias_ : dict of str to GMMGPBias, OnsetCorrectedBias or None
+        Per branch (the onset correction wraps the loading branch's model); None where the
+        training tests gave no points on that branch (zero bias).
     settings : dict
         ``k, inputs, assignment, extra_inputs, n_grid, use_companion, random_state, holdout, target,
-        trend, pooled, weights, velocity, bias_params`` (the arguments of :func:`fit_model`).
+        trend, pooled, onset, weights, velocity, bias_params`` (the arguments of :func:`fit_model`).
     columns : dict of str to tuple of str
         Bias input columns per branch, in order (:func:`crashfuse.projection.bias_columns`).
     training_tests : list of str
@@ -283,8 +290,8 @@ def _load(kind: str, cls, path):
 def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, assignment: str = "select",
               extra_inputs: bool = False, n_grid: int | None = 200, use_companion: bool = False,
               random_state: int = 0, surrogate: CAESurrogate | None = None, target: str | None = None,
-              trend: str | None = None, pooled: bool | None = None, weights: bool = True, velocity: str = "sqrt",
-              **bias_params) -> FittedModel:
+              trend: str | None = None, pooled: bool | None = None, onset: bool | None = None, weights: bool = True,
+              velocity: str = "sqrt", **bias_params) -> FittedModel:
     """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
 
     Parameters
@@ -323,6 +330,10 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
         With K > 1, fit the cluster GPs on the residual of one GP over all the fold's bias data
         (:class:`GMMGPBias` ``pooled``). None: ``DEFAULT_POOLED[inputs]`` (``paper`` as
         published, no; ``state`` yes).
+    onset : bool or None
+        Correct the loading branch's held-out error over the time since contact early in the pulse
+        (:class:`crashfuse.bias.OnsetCorrectedBias`; ``state`` inputs only). None:
+        ``DEFAULT_ONSET[inputs]``.
     weights : bool
         Axle masses among the bias inputs.
     velocity : {"linear", "sqrt"}
@@ -345,6 +356,10 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     target = DEFAULT_TARGET[inputs] if target is None else target
     trend = DEFAULT_TREND[inputs] if trend is None else trend
     pooled = DEFAULT_POOLED[inputs] if pooled is None else bool(pooled)
+    onset = DEFAULT_ONSET[inputs] if onset is None else bool(onset)
+    if onset and inputs != "state":
+        raise InputError("the onset correction needs the state inputs (the velocity gives the time since contact)",
+                         field="--onset")
     if not campaign.cae:
         raise InputError("the campaign has no CAE runs: the method corrects a CAE model", campaign.root, "source")
     held = _holdout(campaign, holdout)
@@ -357,11 +372,12 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
                      target=target, weights=weights, velocity=velocity)
     seeds = np.random.RandomState(random_state).randint(_SEED_MAX, size=len(BRANCHES))
     bias = {b: _fit_branch(data, b, k, assignment, int(seed), {"trend": trend, "pooled": pooled, **bias_params},
-                            campaign.root)
+                            campaign.root, onset and b == "loading")
             for b, seed in zip(BRANCHES, seeds)}
     settings = dict(k=int(k), inputs=inputs, assignment=assignment, extra_inputs=bool(extra_inputs),
                     n_grid=n_grid, use_companion=bool(use_companion), random_state=random_state,
-                    holdout=sorted(held), target=target, trend=trend, pooled=pooled, weights=bool(weights),
+                    holdout=sorted(held), target=target, trend=trend, pooled=pooled, onset=onset,
+                    weights=bool(weights),
                     velocity=velocity,
                     bias_params=dict(bias_params))
     return FittedModel(
@@ -394,12 +410,17 @@ def _holdout(campaign: Campaign, holdout) -> set[str]:
     return held
 
 
-def _fit_branch(data: BiasData, branch: str, k: int, assignment: str, seed: int, params: dict, root):
-    """One branch's GMMGPBias; None for an unloading branch without data (zero bias there)."""
+def _fit_branch(data: BiasData, branch: str, k: int, assignment: str, seed: int, params: dict, root,
+                onset: bool = False):
+    """One branch's GMMGPBias (with the onset correction if asked); None for an unloading branch
+    without data (zero bias there)."""
     d = data.branch(branch)
     if d.y.size == 0 and branch == "unloading":
         return None
     est = GMMGPBias(n_clusters=k, assignment=assignment, random_state=seed, **params)
+    if onset:
+        est = OnsetCorrectedBias(est, functools.partial(nominal_time, d.columns), random_state=seed,
+                                 blas_threads=est.blas_threads)
     try:
         return est.fit(d.X, d.y, d.groups)
     except TooFewPointsError as err:  # too few points for K and the GP parameters

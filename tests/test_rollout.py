@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from crashfuse.bias import GMMGPBias, OnsetCorrectedBias
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.iso18571 import iso_score
@@ -300,7 +301,8 @@ def test_file_formats_are_versioned_per_kind(tmp_path, model):
     from crashfuse.model import FORMAT, load_surrogate, save_surrogate
     old = tmp_path / "old.pkl"
     old.write_bytes(pickle.dumps({"format": FORMAT["model"] - 1, "model": model}))
-    with pytest.raises(InputError, match="model file format 1, this crashfuse reads 2: refit"):
+    with pytest.raises(InputError, match=f"model file format {FORMAT['model'] - 1}, this crashfuse reads "
+                                         f"{FORMAT['model']}: refit"):
         load_model(old)
     save_surrogate(model.surrogate, tmp_path / "s.pkl")
     assert pickle.loads((tmp_path / "s.pkl").read_bytes())["format"] == FORMAT["surrogate"] == 1
@@ -401,11 +403,32 @@ def test_each_input_mode_has_its_default_clusters(campaign, surrogate, inputs, p
     """paper: the published independent cluster GPs; state: cluster GPs on a pooled GP's residual."""
     model = fit_model(campaign, 2, inputs=inputs, surrogate=surrogate, min_cluster_points=10, **FAST)
     est = model.bias_["loading"]
+    est = est.base_ if isinstance(est, OnsetCorrectedBias) else est
     assert model.settings["pooled"] is pooled and est.pooled is pooled
     assert (est.pooled_gp_ is not None) is (pooled and len(est.gps_) > 1)
     other = fit_model(campaign, 2, inputs=inputs, surrogate=surrogate, pooled=not pooled, min_cluster_points=10,
                       **FAST)
-    assert other.bias_["loading"].pooled is not pooled
+    other = other.bias_["loading"]
+    assert (other.base_ if isinstance(other, OnsetCorrectedBias) else other).pooled is not pooled
+
+
+@pytest.mark.parametrize(("inputs", "onset"), [("paper", False), ("state", True)])
+def test_each_input_mode_has_its_default_onset_correction(campaign, surrogate, inputs, onset):
+    """state: the loading branch's model corrects its held-out error over the time since contact."""
+    model = fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, **FAST)
+    assert model.settings["onset"] is onset
+    assert isinstance(model.bias_["loading"], OnsetCorrectedBias) is onset
+    assert isinstance(model.bias_["unloading"], GMMGPBias)
+    if onset:
+        est = model.bias_["loading"]
+        x, v = np.array([0.05, 0.3]), np.array([14.0, 10.0])
+        X = model.features("loading", x, v, model.condition(15.0, 1000.0, 700.0))
+        np.testing.assert_allclose(est.time(X), 2 * x / (15.0 + v))
+        off = fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, onset=False, **FAST)
+        assert isinstance(off.bias_["loading"], GMMGPBias) and off.settings["onset"] is False
+    else:
+        with pytest.raises(InputError, match="state inputs"):
+            fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, onset=True, **FAST)
 
 def test_rollout_rebound_is_sought_where_pulse_metrics_seeks_it():
     # A long record whose velocity keeps falling after 200 ms: only the rebound inside the

@@ -31,6 +31,7 @@ def method_args():
     flags += ["--extra-inputs"] if METHOD["extra_inputs"] else []
     flags += [f"--trend {METHOD['trend']}"] if METHOD["trend"] else []
     flags += [] if METHOD["pooled"] is None else ["--pooled" if METHOD["pooled"] else "--no-pooled"]
+    flags += [] if METHOD["onset"] is None else ["--onset" if METHOD["onset"] else "--no-onset"]
     return " ".join(flags)
 
 
