@@ -22,7 +22,7 @@ from crashfuse.io.campaign import read_campaign
 from crashfuse.model import fit_model
 from crashfuse.surrogate import CAESurrogate
 
-DEFAULT_K = 1  # model.choose_k picks it from training data (docs/method-rollout.md, "Default K")
+DEFAULT_K = 1  # the timed single fold (model.choose_k picks K1 for paper, K3 for state: docs/method-rollout.md)
 
 
 def _campaign(folder):

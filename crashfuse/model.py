@@ -377,9 +377,7 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     settings = dict(k=int(k), inputs=inputs, assignment=assignment, extra_inputs=bool(extra_inputs),
                     n_grid=n_grid, use_companion=bool(use_companion), random_state=random_state,
                     holdout=sorted(held), target=target, trend=trend, pooled=pooled, onset=onset,
-                    weights=bool(weights),
-                    velocity=velocity,
-                    bias_params=dict(bias_params))
+                    weights=bool(weights), velocity=velocity, bias_params=dict(bias_params))
     return FittedModel(
         surrogate=surrogate, bias_=bias, settings=settings,
         columns={b: data.branch(b).columns for b in BRANCHES}, training_tests=train,
