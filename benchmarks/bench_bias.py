@@ -26,7 +26,8 @@ import tracemalloc
 
 import numpy as np
 
-from crashfuse.bias import GMMGPBias, KrigingGP
+from crashfuse.gp.kriging import KrigingGP
+from crashfuse.method.mixture import GMMGPBias
 
 EXACT_MAX = 2000  # full-data MLE beyond this takes minutes per fit
 

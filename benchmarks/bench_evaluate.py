@@ -17,10 +17,10 @@ import time
 import numpy as np
 import psutil
 
-from crashfuse.evaluate import evaluate
+from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.campaign import read_campaign
-from crashfuse.model import fit_model
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.method.model import fit_model
+from crashfuse.method.surrogate import CAESurrogate
 
 DEFAULT_K = 1  # the timed single fold (model.choose_k picks K1 for paper, K3 for state: docs/method-rollout.md)
 

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from crashfuse.iso18571 import DT, iso_score, iso_score_many
+from crashfuse.signals.iso18571 import DT, iso_score, iso_score_many
 
 KEYS = ("overall", "corridor", "phase", "magnitude", "slope")
 

@@ -16,10 +16,10 @@ import tracemalloc
 
 import numpy as np
 
-from crashfuse.dynamics import rollout
+from crashfuse.signals.dynamics import rollout
 from crashfuse.io.campaign import read_campaign
-from crashfuse.model import fit_model
-from crashfuse.rollout import _BranchBias, _decel_fn, _prepare, predict
+from crashfuse.method.model import fit_model
+from crashfuse.method.rollout import _BranchBias, _decel_fn, _prepare, predict
 
 
 def _campaign(folder):

@@ -29,10 +29,10 @@ import time
 import numpy as np
 from sklearn.base import clone
 
-from crashfuse.domain import displacement_branches
-from crashfuse.iso18571 import iso_score, iso_score_many
-from crashfuse.projection import bias_data, project_branch, thin
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.signals.domain import displacement_branches
+from crashfuse.signals.iso18571 import iso_score, iso_score_many
+from crashfuse.method.projection import bias_data, project_branch, thin
+from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
 

@@ -2,8 +2,8 @@
 
 Everything runs on real leave-one-test-out folds of a campaign (default: the `paper` campaign,
 seed 0, generated in memory), with the CAE surrogate fitted once and shared, as in
-:func:`crashfuse.evaluate.evaluate`. A fold's bias models are both branches' GMM-GP models as
-:func:`crashfuse.model.fit_model` fits them: hyperparameters by maximum likelihood on a seeded random
+:func:`crashfuse.evaluation.loto.evaluate`. A fold's bias models are both branches' GMM-GP models as
+:func:`crashfuse.method.model.fit_model` fits them: hyperparameters by maximum likelihood on a seeded random
 subset of each cluster (``max_fit_points``, 300 by default), then conditioned on every point of it.
 
 Part 1 - fit cost. One fold (``--holdout``), K in ``--ks``: ``n_grid`` is chosen so that the fold
@@ -50,13 +50,13 @@ import tracemalloc
 import numpy as np
 from joblib import Parallel, delayed
 
-from crashfuse.bias import GMMGPBias
+from crashfuse.method.mixture import GMMGPBias
 from crashfuse.io.campaign import read_campaign
-from crashfuse.iso18571 import iso_score
-from crashfuse.model import fit_model
-from crashfuse.projection import BRANCHES, bias_data
-from crashfuse.rollout import predict
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.method.model import fit_model
+from crashfuse.method.projection import BRANCHES, bias_data
+from crashfuse.method.rollout import predict
+from crashfuse.method.surrogate import CAESurrogate
 
 FULL, EXACT = "full", "full-exact"  # n_grid labels of the unthinned rows: SoD, and exact where it fits
 WINDOW_S = (0.0, 0.060)

@@ -10,7 +10,7 @@ Conventions, written down once (see also the README):
 """
 
 from crashfuse.errors import InputError
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 
 __all__ = ["InputError", "Pulse"]
 __version__ = "0.1.0"

@@ -10,7 +10,7 @@ import json
 import os
 import sys
 
-from crashfuse.effects import EFFECTS
+from crashfuse.diagnosis.laws import EFFECTS
 from crashfuse.errors import InputError
 
 
@@ -32,7 +32,7 @@ def _pulse_metrics(args) -> int:
     import pandas as pd
 
     from crashfuse.io.loading import load_pulses
-    from crashfuse.metrics import pulse_metrics
+    from crashfuse.signals.metrics import pulse_metrics
 
     rows = [pulse_metrics(p) for p in load_pulses(args.path, cfc=None)]
     if args.json:
@@ -43,7 +43,7 @@ def _pulse_metrics(args) -> int:
 
 
 def _iso_score(args) -> int:
-    from crashfuse.iso18571 import score_files
+    from crashfuse.signals.iso18571 import score_files
 
     scores = score_files(args.test, args.prediction, args.start_ms, args.end_ms)
     if args.json:
@@ -54,7 +54,7 @@ def _iso_score(args) -> int:
 
 
 def _barrier_model(args) -> int:
-    from crashfuse.barrier import barrier_campaign
+    from crashfuse.world.barrier import barrier_campaign
 
     folder, comparison = barrier_campaign(args.ev5_dir, args.out, args.powertrain, args.drive)
     if args.json:
@@ -103,7 +103,7 @@ def _world_validate(args) -> int:
 
 def _fit(args) -> int:
     from crashfuse.io.campaign import read_campaign
-    from crashfuse.model import fit_model
+    from crashfuse.method.model import fit_model
 
     campaign = read_campaign(args.campaign)
     model = fit_model(campaign, args.k, inputs=args.inputs, holdout=args.holdout, assignment=args.assignment,
@@ -118,8 +118,8 @@ def _fit(args) -> int:
 
 def _predict(args) -> int:
     from crashfuse.io.atomic import atomic_path
-    from crashfuse.model import load_model
-    from crashfuse.rollout import predict
+    from crashfuse.method.model import load_model
+    from crashfuse.method.rollout import predict
     from crashfuse.units import LB, MPH
 
     model = load_model(args.model)
@@ -139,8 +139,8 @@ def _predict(args) -> int:
 
 def _prepare(args) -> int:
     from crashfuse.io.campaign import read_campaign
-    from crashfuse.model import save_surrogate
-    from crashfuse.surrogate import CAESurrogate
+    from crashfuse.method.model import save_surrogate
+    from crashfuse.method.surrogate import CAESurrogate
 
     campaign = read_campaign(args.campaign)
     save_surrogate(CAESurrogate(random_state=args.seed).fit(campaign), args.out)
@@ -150,9 +150,9 @@ def _prepare(args) -> int:
 
 
 def _evaluate(args) -> int:
-    from crashfuse.evaluate import evaluate
+    from crashfuse.evaluation.loto import evaluate
     from crashfuse.io.campaign import read_campaign
-    from crashfuse.model import load_surrogate
+    from crashfuse.method.model import load_surrogate
 
     campaign = read_campaign(args.campaign)
     surrogate = load_surrogate(args.surrogate) if args.surrogate else None
@@ -169,9 +169,9 @@ def _evaluate(args) -> int:
 
 
 def _diagnose(args) -> int:
-    from crashfuse.diagnose import diagnose, write_diagnosis
+    from crashfuse.diagnosis.diagnose import diagnose, write_diagnosis
     from crashfuse.io.campaign import read_campaign
-    from crashfuse.model import load_surrogate
+    from crashfuse.method.model import load_surrogate
 
     campaign = read_campaign(args.campaign)
     surrogate = load_surrogate(args.surrogate) if args.surrogate else None
@@ -186,7 +186,7 @@ def _diagnose(args) -> int:
 
 
 def _aggregate(args) -> int:
-    from crashfuse.report import aggregate_iso_tables
+    from crashfuse.reporting.tables import aggregate_iso_tables
 
     frame = aggregate_iso_tables(args.tables, args.out)
     print(f"wrote {args.out}: {len(frame)} rows")
@@ -194,7 +194,7 @@ def _aggregate(args) -> int:
 
 
 def _report(args) -> int:
-    from crashfuse.report import write_tables
+    from crashfuse.reporting.tables import write_tables
 
     for path in write_tables(args.iso_table, args.out, score=args.score):
         print(f"wrote {path}")
@@ -202,7 +202,7 @@ def _report(args) -> int:
 
 
 def _plot_summary(args) -> int:
-    from crashfuse.plots import plot_iso_summary
+    from crashfuse.reporting.plots import plot_iso_summary
 
     print(f"wrote {plot_iso_summary(args.iso_table, args.out, window=args.window, score=args.score)}")
     return 0
@@ -210,7 +210,7 @@ def _plot_summary(args) -> int:
 
 def _track(args) -> int:
     from crashfuse.io.atomic import write_text
-    from crashfuse.tracking import log_evaluation
+    from crashfuse.reporting.tracking import log_evaluation
 
     try:
         config = json.loads(args.config_json) if args.config_json else None

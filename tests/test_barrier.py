@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from fakes import EV5Spec, write_ev5
 
-from crashfuse.barrier import barrier_campaign, fit_single_mass, impulse_mass, model_pulse, momentum_lag
+from crashfuse.world.barrier import barrier_campaign, fit_single_mass, impulse_mass, model_pulse, momentum_lag
 from crashfuse.cli import main
-from crashfuse.dynamics import rollout
+from crashfuse.signals.dynamics import rollout
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import read_campaign
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 
 V10146 = Path(__file__).resolve().parents[2] / "shared" / "data" / "nhtsa" / "v10146"
 real = pytest.mark.skipif(not V10146.is_dir(), reason="shared NHTSA data not present")

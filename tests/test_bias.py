@@ -1,4 +1,4 @@
-"""Tests for crashfuse.bias: kriging checked against independent derivations and sklearn."""
+"""Tests for crashfuse.gp.kriging: kriging checked against independent derivations and sklearn."""
 
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ from sklearn.base import clone
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, DotProduct, WhiteKernel
 
-from crashfuse.bias import GMMGPBias, KrigingGP, OnsetCorrectedBias, TooFewPointsError
+from crashfuse.gp.kriging import KrigingGP
+from crashfuse.method.mixture import GMMGPBias, TooFewPointsError
+from crashfuse.method.onset import OnsetCorrectedBias
 
 
 def _oracle_loglik(eta, Z, u, trend):
@@ -464,7 +466,7 @@ def test_likelihood_linear_algebra_is_bit_identical_to_the_plain_forms():
     of the plain expressions they replace: the optimiser's path, and so every score, depends on them."""
     from scipy.linalg import cholesky, lapack
 
-    from crashfuse.bias import _correlation, _factor_with_nugget, _inverse_from_factor, _self_correlation
+    from crashfuse.gp.kriging import _correlation, _factor_with_nugget, _inverse_from_factor, _self_correlation
     rng = np.random.default_rng(3)
     Z, theta, nugget = rng.normal(size=(120, 4)), np.array([0.3, 5.0, 1e-4, 80.0]), 1e-3
     R = _self_correlation(Z, theta)

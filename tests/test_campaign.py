@@ -9,13 +9,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crashfuse import filters
+from crashfuse.signals import filters
 from crashfuse.errors import InputError
 from crashfuse.io import campaign as cmod
 from crashfuse.io.campaign import (Campaign, read_campaign, read_pulse_csv, write_campaign, write_pulse_csv)
 from crashfuse.io.nhtsa import read_nhtsa
 from crashfuse.io.loading import load_pulses
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 NHTSA = SHARED / "data" / "nhtsa" / "v10146"

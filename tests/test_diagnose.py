@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from crashfuse import effect_fit as ef
+from crashfuse.diagnosis import effect_fit as ef
 from crashfuse.cli import main
-from crashfuse.diagnose import diagnose, write_diagnosis
-from crashfuse.dynamics import State
-from crashfuse.effects import EFFECTS, decel_fn, headline, parameters
+from crashfuse.diagnosis.diagnose import diagnose, write_diagnosis
+from crashfuse.signals.dynamics import State
+from crashfuse.diagnosis.laws import EFFECTS, decel_fn, headline, parameters
 from crashfuse.errors import InputError
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
@@ -105,7 +105,7 @@ def test_fit_recovers_parameters_of_its_own_law(case):
     """Targets made by the laws themselves: the fit must find the parameters again."""
     rows = np.arange(len(case.test_ids))
     truth = {"damping.c": np.full(rows.size, 3000.0), "mass.extra": np.full(rows.size, 150.0)}
-    from crashfuse.effects import simulate
+    from crashfuse.diagnosis.laws import simulate
     made = simulate(case.plant, ("damping", "mass"), truth, ef.DT, case.n_steps).decel
     synthetic = ef.TestCase(case.test_ids, case.plant, made, np.ones_like(case.mask), case.time, case.cae_source)
     fits = ef.fit_folds(synthetic, ("damping", "mass"), [list(rows)])
@@ -130,7 +130,7 @@ def test_withheld_damping_is_found_and_recovered(damping_world):
 def test_the_cae_speed_sensitivity_does_not_depend_on_the_cae_design():
     """Two seeds: the same tests and companion runs, different 60-run designs. The CAE force's slope
     in crush speed (regression over all runs) agrees; surrogate secants disagreed by up to 2.6x."""
-    from crashfuse.effects import crush_force_rate
+    from crashfuse.diagnosis.laws import crush_force_rate
 
     s = np.array([0.05, 0.2, 0.45])
     slopes = []
@@ -209,7 +209,7 @@ def test_paper_campaign_verdict():
 
 
 def test_a_law_at_its_upper_bound_is_flagged(case):
-    from crashfuse.diagnose import Candidate
+    from crashfuse.diagnosis.diagnose import Candidate
     params = ef.effect_params(case, ("mass",))
     upper = params[0].upper
     at_bound = ef.FoldFits(("mass",), params, np.array([[0.5 * upper], [upper]]), np.zeros(2))
@@ -220,7 +220,7 @@ def test_a_law_at_its_upper_bound_is_flagged(case):
 
 def test_the_weak_end_of_the_search_box_is_not_a_physical_limit(case):
     """A large rate reference d means little hardening: a subtle rate effect may fit there (q inside)."""
-    from crashfuse.diagnose import Candidate
+    from crashfuse.diagnosis.diagnose import Candidate
     params = ef.effect_params(case, ("strain_rate",))
     d, q = params
     weak = ef.FoldFits(("strain_rate",), params, np.array([[d.upper, 6.0]] * 2), np.zeros(2))
@@ -230,7 +230,7 @@ def test_the_weak_end_of_the_search_box_is_not_a_physical_limit(case):
 
 
 def test_a_parameter_that_never_left_its_start_is_not_identified(case):
-    from crashfuse.diagnose import Candidate, _candidate_json
+    from crashfuse.diagnosis.diagnose import Candidate, _candidate_json
     params = ef.effect_params(case, ("damping",))
     for all_tests, identified in ((params[0].start[0], False), (2500.0, True)):
         fits = ef.FoldFits(("damping",), params, np.array([[2500.0], [all_tests]]), np.zeros(2))

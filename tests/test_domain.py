@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from crashfuse import InputError, Pulse
-from crashfuse.domain import displacement_branches, kinematics, position_step, velocity_step
+from crashfuse.signals.domain import displacement_branches, kinematics, position_step, velocity_step
 from crashfuse.units import G0
 
 DT = 1e-4

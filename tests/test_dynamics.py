@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crashfuse.domain import displacement_branches, kinematics
-from crashfuse.dynamics import Trajectory, rollout
+from crashfuse.signals.domain import displacement_branches, kinematics
+from crashfuse.signals.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve

@@ -1,14 +1,14 @@
-"""The rate-aware CAE force of the effect laws (crashfuse.effects) on analytic rate-dependent models."""
+"""The rate-aware CAE force of the effect laws (crashfuse.diagnosis.laws) on analytic rate-dependent models."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from crashfuse.dynamics import rollout
-from crashfuse.effects import Plant, crush_force_rate, crush_speed, simulate
-from crashfuse.pulse import Pulse
-from crashfuse.surrogate import CAECurve
+from crashfuse.signals.dynamics import rollout
+from crashfuse.diagnosis.laws import Plant, crush_force_rate, crush_speed, simulate
+from crashfuse.signals.pulse import Pulse
+from crashfuse.method.surrogate import CAECurve
 
 M = 1500.0  # kg
 K = 9.4e5  # N/m: linear crush stiffness, about 0.6 m of crush at 15 m/s
@@ -126,7 +126,7 @@ def test_rate_hardening_acts_on_the_static_strength():
 def test_no_faster_curve_where_the_surrogate_cannot_predict():
     from types import SimpleNamespace
 
-    from crashfuse.effect_fit import _faster
+    from crashfuse.diagnosis.effect_fit import _faster
     from crashfuse.errors import InputError
 
     class Surrogate:

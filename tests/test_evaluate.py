@@ -8,16 +8,16 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import crashfuse.evaluate as ev
-import crashfuse.model
+import crashfuse.evaluation.loto as ev
+import crashfuse.method.model
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import write_campaign
-from crashfuse.iso18571 import iso_score
-from crashfuse.model import fit_model, load_model
-from crashfuse.report import read_fold_json
-from crashfuse.rollout import predict
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.method.model import fit_model, load_model
+from crashfuse.reporting.tables import read_fold_json
+from crashfuse.method.rollout import predict
+from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
 
@@ -68,7 +68,7 @@ def test_fit_with_a_holdout_reproduces_the_evaluate_fold(campaign, monkeypatch):
     # A random restart makes the surrogate depend on its seed (with none it is deterministic).
     restarting = functools.partial(CAESurrogate, n_restarts=1)
     monkeypatch.setattr(ev, "CAESurrogate", restarting)
-    monkeypatch.setattr(crashfuse.model, "CAESurrogate", restarting)
+    monkeypatch.setattr(crashfuse.method.model, "CAESurrogate", restarting)
     fold = ev.evaluate(campaign, ks=[1], inputs=["paper"], holdout="T05", n_samples=5, random_state=3, n_jobs=1,
                        progress=None, **FAST)
     model = fit_model(campaign, 1, inputs="paper", holdout="T05", random_state=3, **FAST)

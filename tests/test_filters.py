@@ -5,7 +5,7 @@ import pytest
 from scipy import signal
 
 from crashfuse import InputError, Pulse
-from crashfuse.filters import cfc_filter, filter_pulse, j211_coefficients
+from crashfuse.signals.filters import cfc_filter, filter_pulse, j211_coefficients
 from crashfuse.units import G0
 
 # Frequency-response corridor of a data channel, SAE J211-1 Figure 1 = ISO 6487 Figure 1, as

@@ -7,14 +7,14 @@ import json
 import numpy as np
 import pytest
 
-from crashfuse import gap as gapmod
-from crashfuse import plots
-from crashfuse.dynamics import rollout
+from crashfuse.diagnosis import gap as gapmod
+from crashfuse.reporting import plots
+from crashfuse.signals.dynamics import rollout
 from crashfuse.errors import InputError
-from crashfuse.gap import locate_gap
+from crashfuse.diagnosis.gap import locate_gap
 from crashfuse.io.campaign import Campaign
-from crashfuse.pulse import Pulse
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.signals.pulse import Pulse
+from crashfuse.method.surrogate import CAESurrogate
 
 G = 9.80665  # m/s^2 per g, written here independently of crashfuse.units
 DT, N_STEPS = 2e-4, 600  # 0-120 ms

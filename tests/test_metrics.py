@@ -10,7 +10,7 @@ from scipy import integrate, signal
 from crashfuse import Pulse
 from crashfuse.cli import main
 from crashfuse.io.nhtsa import read_nhtsa
-from crashfuse.metrics import occupant_load_criterion, pulse_metrics
+from crashfuse.signals.metrics import occupant_load_criterion, pulse_metrics
 from crashfuse.units import G0, KMH
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"

@@ -11,10 +11,11 @@ import pandas as pd
 import pytest
 from matplotlib.collections import PolyCollection
 
-from crashfuse import Pulse, plots
+from crashfuse import Pulse
+from crashfuse.reporting import plots
 from crashfuse.cli import main
 from crashfuse.errors import InputError
-from crashfuse.report import read_iso_table
+from crashfuse.reporting.tables import read_iso_table
 
 G = 9.80665  # standard gravity (CGPM 1901), m/s^2 per g, written here independently of crashfuse.units
 SHARED = Path(__file__).resolve().parents[2] / "shared"

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crashfuse.domain import displacement_branches
-from crashfuse.dynamics import rollout
+from crashfuse.signals.domain import displacement_branches
+from crashfuse.signals.dynamics import rollout
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
-from crashfuse.projection import bias_columns, bias_data, bias_inputs, nominal_time, project_branch, thin
-from crashfuse.pulse import Pulse
-from crashfuse.surrogate import CAECurve, CAESurrogate
+from crashfuse.method.projection import bias_columns, bias_data, bias_inputs, nominal_time, project_branch, thin
+from crashfuse.signals.pulse import Pulse
+from crashfuse.method.surrogate import CAECurve, CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
 
@@ -231,7 +231,7 @@ def test_thinning_cost_falls_with_the_grid(world):
 
 
 def test_relative_target_divides_by_the_floored_cae_decel(cae):
-    from crashfuse.projection import SCALE_FLOOR, bias_scale
+    from crashfuse.method.projection import SCALE_FLOOR, bias_scale
     camp = _pair_campaign(cae)
     absolute = bias_data(camp, ["T1"], inputs="paper", n_grid=None)
     relative = bias_data(camp, ["T1"], inputs="paper", n_grid=None, target="relative")
@@ -245,7 +245,7 @@ def test_relative_target_divides_by_the_floored_cae_decel(cae):
 
 
 def test_sqrt_velocity_column_round_trips(cae):
-    from crashfuse.projection import column_velocity
+    from crashfuse.method.projection import column_velocity
     camp = _pair_campaign(cae)
     linear = bias_data(camp, ["T1"], inputs="state", n_grid=50)
     root = bias_data(camp, ["T1"], inputs="state", n_grid=50, velocity="sqrt")

@@ -5,7 +5,7 @@ import pytest
 
 from crashfuse import InputError, Pulse
 from crashfuse.io.campaign import read_pulse_csv
-from crashfuse.pulse import check_samples
+from crashfuse.signals.pulse import check_samples
 from crashfuse.units import G0
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from crashfuse import report
+from crashfuse.reporting import tables as report
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 

@@ -10,16 +10,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from crashfuse.bias import GMMGPBias, OnsetCorrectedBias
+from crashfuse.method.mixture import GMMGPBias
+from crashfuse.method.onset import OnsetCorrectedBias
 from crashfuse.cli import main
 from crashfuse.errors import InputError
-from crashfuse.iso18571 import iso_score
-from crashfuse.model import Condition, fit_model, load_model
-from crashfuse.projection import cae_curve
-import crashfuse.rollout as rollout_module
-from crashfuse.dynamics import Trajectory
-from crashfuse.rollout import predict
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.method.model import Condition, fit_model, load_model
+from crashfuse.method.projection import cae_curve
+import crashfuse.method.rollout as rollout_module
+from crashfuse.signals.dynamics import Trajectory
+from crashfuse.method.rollout import predict
+from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.world.generate import build, generate
 from crashfuse.world.presets import resolve
 
@@ -142,7 +143,7 @@ def test_test_band_adds_the_scatter_in_quadrature_and_leaves_the_rest(campaign, 
 
 
 def test_relative_scatter_scales_with_the_floored_cae_decel(campaign, model):
-    from crashfuse.projection import bias_scale
+    from crashfuse.method.projection import bias_scale
     rel = dataclasses.replace(model, bias_={"loading": KnownGP(1e-3, 0.05, 0.1), "unloading": None},
                               settings={**model.settings, "target": "relative"})
     pred = _at(rel, campaign.pulses["T06"], n_samples=5, random_state=0)
@@ -155,7 +156,7 @@ def test_relative_scatter_scales_with_the_floored_cae_decel(campaign, model):
 def test_fitted_scatter_recovers_offsets_between_replicates():
     # Replicate tests of one condition: a shared smooth bias plus a constant offset per test,
     # which no input explains. The latent band narrows with more replicates; the scatter must not.
-    from crashfuse.bias import GMMGPBias
+    from crashfuse.method.mixture import GMMGPBias
     rng = np.random.RandomState(0)
     tau, n_tests, n = 0.5, 12, 40
     x = np.tile(np.linspace(0, 1, n), n_tests)
@@ -298,7 +299,7 @@ def test_file_formats_are_versioned_per_kind(tmp_path, model):
     """A model file of an older format is refused (refit); the surrogate's format moves on its own."""
     import pickle
 
-    from crashfuse.model import FORMAT, load_surrogate, save_surrogate
+    from crashfuse.method.model import FORMAT, load_surrogate, save_surrogate
     old = tmp_path / "old.pkl"
     old.write_bytes(pickle.dumps({"format": FORMAT["model"] - 1, "model": model}))
     with pytest.raises(InputError, match=f"model file format {FORMAT['model'] - 1}, this crashfuse reads "
@@ -349,7 +350,7 @@ def test_relative_true_bias_reproduces_the_test(campaign, surrogate):
 
 
 def test_relative_bias_multiplies_the_floored_cae_decel():
-    from crashfuse.projection import SCALE_FLOOR
+    from crashfuse.method.projection import SCALE_FLOOR
     curve = type("Curve", (), {"loading": staticmethod(lambda s: 100.0 * s), "unloading": staticmethod(np.zeros_like)})
     bias = {"loading": lambda x, v, rows: np.full(x.size, 0.5), "unloading": None}
     state = type("State", (), dict(s=np.array([0.01, 1.0]), u=np.zeros(2), v=np.ones(2), loading=np.array([True, True])))
@@ -359,7 +360,7 @@ def test_relative_bias_multiplies_the_floored_cae_decel():
 
 
 def test_joint_state_coverage_flags_low_speed_at_large_crush(campaign, surrogate):
-    from crashfuse.model import state_outside, state_table
+    from crashfuse.method.model import state_outside, state_table
     x = np.tile(np.linspace(0, 1, 50), 2)
     v = np.r_[np.linspace(10, 0, 50), np.linspace(15, 0, 50)]
     table = state_table(x, v, n_bins=10)
@@ -375,7 +376,7 @@ def test_joint_state_coverage_flags_low_speed_at_large_crush(campaign, surrogate
 
 
 def test_choose_k_scores_each_k_on_training_tests_only(campaign, surrogate, monkeypatch):
-    from crashfuse import model as model_module
+    from crashfuse.method import model as model_module
     seen = []
     real = model_module.bias_data
     monkeypatch.setattr(model_module, "bias_data", lambda c, tests, *a, **kw: seen.append(list(tests)) or real(c, tests, *a, **kw))
@@ -432,7 +433,7 @@ def test_each_input_mode_has_its_default_onset_correction(campaign, surrogate, i
 
 def test_rollout_rebound_is_sought_where_pulse_metrics_seeks_it():
     # A long record whose velocity keeps falling after 200 ms: only the rebound inside the
-    # metrics' window counts, as in crashfuse.metrics.pulse_metrics.
+    # metrics' window counts, as in crashfuse.signals.metrics.pulse_metrics.
     t = np.arange(0.0, 0.4, 1e-3)
     v = np.where(t <= 0.2, 10.0 - 60.0 * t, -2.0 - 20.0 * (t - 0.2))[None, :]
     s = np.cumsum(v, axis=1) * 1e-3

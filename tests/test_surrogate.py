@@ -10,14 +10,14 @@ from sklearn.base import clone
 from sklearn.exceptions import NotFittedError
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from crashfuse.domain import displacement_branches
+from crashfuse.signals.domain import displacement_branches
 from crashfuse.errors import InputError
-from crashfuse.filters import filter_pulse
+from crashfuse.signals.filters import filter_pulse
 from crashfuse.io.nhtsa import read_nhtsa
-from crashfuse.iso18571 import iso_score
-from crashfuse.pulse import Pulse
-from crashfuse import surrogate as surrogate_module
-from crashfuse.surrogate import CAECurve, CAESurrogate
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.signals.pulse import Pulse
+from crashfuse.method import surrogate as surrogate_module
+from crashfuse.method.surrogate import CAECurve, CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
 
@@ -174,7 +174,7 @@ def test_the_surrogate_records_and_checks_its_campaign(world, fitted):
 def test_evaluate_refuses_a_surrogate_of_another_campaign(tmp_path, world, fitted, capsys):
     from crashfuse.cli import main
     from crashfuse.io.campaign import write_campaign
-    from crashfuse.model import save_surrogate
+    from crashfuse.method.model import save_surrogate
 
     folder = write_campaign(world.subset([r for r in world.pulses if r != world.cae[-1]]), tmp_path / "campaign")
     save_surrogate(fitted, tmp_path / "s.pkl")

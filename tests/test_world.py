@@ -16,8 +16,8 @@ import pytest
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import read_campaign
-from crashfuse.iso18571 import iso_score
-from crashfuse.metrics import pulse_metrics
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.signals.metrics import pulse_metrics
 from crashfuse.units import G0, MPH
 from crashfuse.world import WORLD_VERSION
 from crashfuse.world.effects import EFFECTS, REALISTIC, parse_overrides

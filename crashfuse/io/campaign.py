@@ -27,7 +27,7 @@ import pandas as pd
 from crashfuse import units
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path, default_mode
-from crashfuse.pulse import MAX_SPEED, SOURCES, Pulse, check_samples
+from crashfuse.signals.pulse import MAX_SPEED, SOURCES, Pulse, check_samples
 
 CONDITIONS = "conditions.csv"
 PULSES = "pulses"
@@ -94,7 +94,7 @@ class Campaign:
             The runs, in the order the conditions table should list them. Their ``meta`` supplies
             ``powertrain`` and ``drive`` (required), ``cae_run_id`` and ``pulse_path`` (optional)
             and ``cfc``, the filter class the decel carries (absent or None: raw, as in
-            ``crashfuse.filters``; set 60 for processed pulses).
+            ``crashfuse.signals.filters``; set 60 for processed pulses).
         columns : iterable of str
             Further ``meta`` keys to keep as extra columns.
         """
@@ -629,10 +629,10 @@ def prepare_pulse(pulse: Pulse, cfc: int | None) -> Pulse:
     """Filter a raw pulse and crop it at first contact if ``cfc`` is given; check it is physically plausible.
 
     With ``cfc`` None the record is returned whole, pre-impact samples included, because whoever
-    filters it later (e.g. `crashfuse.metrics.pulse_metrics`) needs them as lead-in.
+    filters it later (e.g. `crashfuse.signals.metrics.pulse_metrics`) needs them as lead-in.
     """
     if cfc is not None:
-        from crashfuse.filters import filter_pulse  # filters only raw or lighter-class pulses
+        from crashfuse.signals.filters import filter_pulse  # filters only raw or lighter-class pulses
 
         pulse = filter_pulse(pulse, cfc).after_contact()
     if pulse.time[0] > 0.5 * pulse.dt:
@@ -757,7 +757,7 @@ def _cfc_cell(pulse: Pulse, pulse_path) -> str | int | None:
     """What the cfc column says of a row: blank for pulse_path rows, 'raw' or the CFC class."""
     if pulse_path is not None:
         return None
-    cls = pulse.meta.get("cfc")  # absent means raw, as in crashfuse.filters
+    cls = pulse.meta.get("cfc")  # absent means raw, as in crashfuse.signals.filters
     return RAW if cls is None else int(cls)
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from crashfuse.errors import InputError
 from crashfuse.io.channels import combine_x_channels
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 from crashfuse.units import G0
 
 NOVALUE = "NOVALUE"

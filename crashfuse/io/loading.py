@@ -7,7 +7,7 @@ from pathlib import Path
 
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import CONDITIONS, DEFAULT_CFC, prepare_pulse, read_campaign, read_test_folder
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 
 EXPECTED = (f"expected a campaign folder ({CONDITIONS} + pulses/), an NHTSA EV5 test folder (*.EV5) "
             "or an ISO-MME test folder (*.mme)")
@@ -23,7 +23,7 @@ def load_pulses(path: str | os.PathLike, cfc: int | None = DEFAULT_CFC) -> list[
     cfc : int or None
         SAE J211 channel frequency class applied to raw pulses, which are then cropped at first
         contact; None keeps every record whole, pre-impact samples included (what
-        `crashfuse.metrics.pulse_metrics` needs, as it filters before cropping).
+        `crashfuse.signals.metrics.pulse_metrics` needs, as it filters before cropping).
 
     Returns
     -------

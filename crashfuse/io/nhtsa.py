@@ -34,7 +34,7 @@ import pandas as pd
 
 from crashfuse.errors import InputError
 from crashfuse.io.channels import combine_x_channels
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 from crashfuse.units import G0, KMH, MM
 
 TEST_FIELDS = {"title": 1, "date": 3, "test_type": 7, "configuration": 8, "impact_speed_kmh": 14}

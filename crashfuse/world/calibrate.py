@@ -22,10 +22,10 @@ import pandas as pd
 from scipy import optimize
 
 from crashfuse.errors import InputError
-from crashfuse.filters import filter_pulse
+from crashfuse.signals.filters import filter_pulse
 from crashfuse.io.nhtsa import read_nhtsa
-from crashfuse.metrics import pulse_metrics
-from crashfuse.pulse import Pulse
+from crashfuse.signals.metrics import pulse_metrics
+from crashfuse.signals.pulse import Pulse
 from crashfuse.world.effects import EFFECTS, REALISTIC
 from crashfuse.world.simulate import MEASUREMENT, PRETRIGGER, RAW_RATE, Runs, body_decel
 from crashfuse.world.vehicle import VEHICLE

@@ -18,7 +18,7 @@ import pandas as pd
 
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign, write_campaign
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 from crashfuse.world import WORLD_VERSION
 from crashfuse.world.presets import N_CAE, Design, cae_design, table1_tests
 from crashfuse.world.simulate import DURATION, MEASUREMENT, OUT_RATE, RAW_RATE, Runs, simulate

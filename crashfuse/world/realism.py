@@ -17,8 +17,8 @@ import numpy as np
 import pandas as pd
 
 from crashfuse.io.campaign import Campaign
-from crashfuse.iso18571 import iso_score
-from crashfuse.metrics import pulse_metrics
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.signals.metrics import pulse_metrics
 from crashfuse.units import G0, MM, MPH, MS
 
 ISO_RANGE = (0.45, 0.85)

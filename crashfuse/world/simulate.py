@@ -32,7 +32,7 @@ import numpy as np
 from scipy import signal
 
 from crashfuse.errors import InputError
-from crashfuse.filters import cfc_filter
+from crashfuse.signals.filters import cfc_filter
 from crashfuse.world.vehicle import loading_force, stack_onset, strength
 
 RAW_RATE = 25_000.0  # Hz, integration and raw acquisition rate

@@ -3,7 +3,7 @@
 For every catalogue effect, and for the control (nothing withheld), at each strength and seed: a
 campaign from the world whose tests carry the effect and whose CAE runs do not; the diagnosis
 (which sees only the campaign files) must put the withheld effect first, add nothing else, leave
-the control empty, recover the effect's headline parameter (:func:`crashfuse.effects.headline`)
+the control empty, recover the effect's headline parameter (:func:`crashfuse.diagnosis.laws.headline`)
 within :data:`TOLERANCE` and shrink the gap. The answer key comes from the campaign's
 ``world.json``, translated into the diagnosis's terms by :func:`true_headline`.
 """
@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from crashfuse.diagnose import diagnose
-from crashfuse.effects import EFFECTS, F_REF, V_REF
+from crashfuse.diagnosis.diagnose import diagnose
+from crashfuse.diagnosis.laws import EFFECTS, F_REF, V_REF
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import read_campaign
 from crashfuse.world.generate import WORLD_JSON, generate

@@ -28,7 +28,7 @@ import dataclasses
 import numpy as np
 
 from crashfuse.errors import InputError
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 
 
 def _position_increment(v, a_prev, dt):

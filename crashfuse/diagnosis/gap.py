@@ -27,16 +27,16 @@ import numpy as np
 from sklearn.mixture import GaussianMixture
 from sklearn.preprocessing import StandardScaler
 
-from crashfuse.domain import Branch, displacement_branches
+from crashfuse.signals.domain import Branch, displacement_branches
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
-from crashfuse.iso18571 import A0
-from crashfuse.iso18571 import DT as ISO_DT
-from crashfuse.iso18571 import MIN_SAMPLES as ISO_MIN_SAMPLES
-from crashfuse.iso18571 import WEIGHTS, iso_score
-from crashfuse.model import Condition, FittedModel, fit_model
-from crashfuse.projection import BRANCHES, bias_data
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.signals.iso18571 import A0
+from crashfuse.signals.iso18571 import DT as ISO_DT
+from crashfuse.signals.iso18571 import MIN_SAMPLES as ISO_MIN_SAMPLES
+from crashfuse.signals.iso18571 import WEIGHTS, iso_score
+from crashfuse.method.model import Condition, FittedModel, fit_model
+from crashfuse.method.projection import BRANCHES, bias_data
+from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MPH, MS
 
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile
@@ -285,7 +285,7 @@ def locate_gap(campaign: Campaign, surrogate: CAESurrogate | None = None, k: int
 def choose_k(X, random_state: int = 0, candidates=K_CANDIDATES) -> tuple[int, dict]:
     """K of the bias model's mixture by BIC, on its own clustering view (standardised inputs).
 
-    A mixture of the same form as :class:`crashfuse.bias.GMMGPBias`'s (full covariance, 5
+    A mixture of the same form as :class:`crashfuse.method.mixture.GMMGPBias`'s (full covariance, 5
     initialisations, covariance floor 1e-3), seeded with ``random_state`` as given and without its
     small-cluster merging, so the K chosen here is a model-selection reading, not the clusters the
     bias model then fits; candidates above the number of points are skipped.

@@ -1,6 +1,6 @@
 """The fitted model: CAE surrogate + one GMM-GP bias model per branch + settings; save and load.
 
-A :class:`FittedModel` holds everything a prediction needs (:func:`crashfuse.rollout.predict`):
+A :class:`FittedModel` holds everything a prediction needs (:func:`crashfuse.method.rollout.predict`):
 the CAE surrogate G_a, the companion CAE runs of the campaign's tests (for ``use_companion``),
 the loading and unloading bias models, the training ranges (for extrapolation flags), the
 settings, the campaign's content hash and the crashfuse version.
@@ -20,13 +20,15 @@ import pickle
 import numpy as np
 
 import crashfuse
-from crashfuse.bias import _SEED_MAX, GMMGPBias, OnsetCorrectedBias, TooFewPointsError
-from crashfuse.dynamics import Trajectory
+from crashfuse.gp.kriging import SEED_MAX
+from crashfuse.method.mixture import GMMGPBias, TooFewPointsError
+from crashfuse.method.onset import OnsetCorrectedBias
+from crashfuse.signals.dynamics import Trajectory
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
-from crashfuse.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity, nominal_time
-from crashfuse.surrogate import CAECurve, CAESurrogate
+from crashfuse.method.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity, nominal_time
+from crashfuse.method.surrogate import CAECurve, CAESurrogate
 
 # File format version per kind: a change to one kind's objects leaves the other's files valid.
 FORMAT = {"model": 3, "surrogate": 1}  # model 2: GMMGPBias gained the pooled GP; 3: the onset correction
@@ -45,7 +47,7 @@ DEFAULT_TREND = {"paper": "constant", "state": "zero"}
 DEFAULT_POOLED = {"paper": False, "state": True}
 # The state mode's loading-branch bias also corrects its own held-out error over the time since
 # contact in the first 15-22 ms, where onset transients locked in time move with speed in s
-# (:class:`crashfuse.bias.OnsetCorrectedBias`; docs/bias-model.md, "Onset correction"). The
+# (:class:`crashfuse.method.onset.OnsetCorrectedBias`; docs/bias-model.md, "Onset correction"). The
 # paper mode has no velocity, hence no time.
 DEFAULT_ONSET = {"paper": False, "state": True}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
@@ -86,7 +88,7 @@ class FittedModel:
         ``k, inputs, assignment, extra_inputs, n_grid, use_companion, random_state, holdout, target,
         trend, pooled, onset, weights, velocity, bias_params`` (the arguments of :func:`fit_model`).
     columns : dict of str to tuple of str
-        Bias input columns per branch, in order (:func:`crashfuse.projection.bias_columns`).
+        Bias input columns per branch, in order (:func:`crashfuse.method.projection.bias_columns`).
     training_tests : list of str
         run_ids of the fold's training tests.
     groups : dict of str to list of str
@@ -162,7 +164,7 @@ class FittedModel:
         Returns
         -------
         ndarray, shape (n, len(columns[branch]))
-            In the training columns' order (:func:`crashfuse.projection.bias_columns`).
+            In the training columns' order (:func:`crashfuse.method.projection.bias_columns`).
         """
         return bias_inputs(self.columns[branch], x, v, cond.v0, cond.front_weight, cond.rear_weight,
                            cond.powertrain, cond.drive)
@@ -210,7 +212,7 @@ class FittedModel:
         Parameters
         ----------
         cond : Condition
-        mean_traj : crashfuse.dynamics.Trajectory
+        mean_traj : crashfuse.signals.dynamics.Trajectory
             The mean-function rollout (one sample).
 
         Returns
@@ -311,20 +313,20 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     extra_inputs : bool
         Append one-hot powertrain and drive to the bias inputs.
     n_grid : int or None
-        Bias points per test per branch after thinning (:func:`crashfuse.projection.bias_data`).
+        Bias points per test per branch after thinning (:func:`crashfuse.method.projection.bias_data`).
     use_companion : bool
         At prediction, use a test's companion CAE run directly when the condition is that test's
         (the bias data always pair each test with its companion run).
     random_state : int
-        Seeds the surrogate (as is, like :func:`crashfuse.evaluate.evaluate`) and both bias models.
+        Seeds the surrogate (as is, like :func:`crashfuse.evaluation.loto.evaluate`) and both bias models.
     surrogate : CAESurrogate, optional
         Already fitted on this campaign's CAE runs (shared across folds; it sees no test data).
     target : {"absolute", "relative"} or None
         What the GPs learn: the bias in m/s^2, or the bias relative to the CAE deceleration
-        (:func:`crashfuse.projection.bias_scale`); the rollout adds ``scale(a_cae) * bias``.
+        (:func:`crashfuse.method.projection.bias_scale`); the rollout adds ``scale(a_cae) * bias``.
         None: ``DEFAULT_TARGET[inputs]`` (``paper`` as published, absolute; ``state`` relative).
     trend : {"zero", "constant", "linear"} or None
-        The GPs' trend (:class:`crashfuse.bias.KrigingGP`). None: ``DEFAULT_TREND[inputs]``
+        The GPs' trend (:class:`crashfuse.gp.kriging.KrigingGP`). None: ``DEFAULT_TREND[inputs]``
         (``paper`` as published, constant; ``state`` zero).
     pooled : bool or None
         With K > 1, fit the cluster GPs on the residual of one GP over all the fold's bias data
@@ -332,12 +334,12 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
         published, no; ``state`` yes).
     onset : bool or None
         Correct the loading branch's held-out error over the time since contact early in the pulse
-        (:class:`crashfuse.bias.OnsetCorrectedBias`; ``state`` inputs only). None:
+        (:class:`crashfuse.method.onset.OnsetCorrectedBias`; ``state`` inputs only). None:
         ``DEFAULT_ONSET[inputs]``.
     weights : bool
         Axle masses among the bias inputs.
     velocity : {"linear", "sqrt"}
-        The ``state`` mode's velocity coordinate (:func:`crashfuse.projection.bias_data`);
+        The ``state`` mode's velocity coordinate (:func:`crashfuse.method.projection.bias_data`);
         ``sqrt`` (default): sign(v) sqrt(|v|), a concave rate coordinate (docs/method-rollout.md).
     **bias_params
         Further :class:`GMMGPBias` settings (``n_restarts``, ``max_fit_points`` ...).
@@ -370,7 +372,7 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
         surrogate = CAESurrogate(random_state=random_state).fit(campaign)
     data = bias_data(campaign, train, inputs, extra_inputs, n_grid, surrogate=surrogate, use_companion=True,
                      target=target, weights=weights, velocity=velocity)
-    seeds = np.random.RandomState(random_state).randint(_SEED_MAX, size=len(BRANCHES))
+    seeds = np.random.RandomState(random_state).randint(SEED_MAX, size=len(BRANCHES))
     bias = {b: _fit_branch(data, b, k, assignment, int(seed), {"trend": trend, "pooled": pooled, **bias_params},
                             campaign.root, onset and b == "loading")
             for b, seed in zip(BRANCHES, seeds)}

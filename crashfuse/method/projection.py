@@ -1,7 +1,7 @@
 """Bijective projection (paper Eq. 11-15): bias data from tests and their CAE curves, per branch.
 
 For one test and the CAE curve at its condition, on one branch (loading in ``x = s``,
-unloading in ``x = u = s_max - s``, see :mod:`crashfuse.domain`):
+unloading in ``x = u = s_max - s``, see :mod:`crashfuse.signals.domain`):
 
 * scenario 1 - test points inside the CAE branch's range get the CAE interpolated there:
   ``bias_i = a_test(x_i) - a_cae(x_i)``;
@@ -15,7 +15,7 @@ point carries the TEST's velocity there (interpolated on the test branch), the e
 the ``state`` mode.
 
 The CAE curve of a test is its companion run (``cae_run_id``) or, where there is none or when
-asked, the CAE surrogate's curve at the test's condition (:class:`crashfuse.surrogate.CAECurve`
+asked, the CAE surrogate's curve at the test's condition (:class:`crashfuse.method.surrogate.CAECurve`
 either way). After its separation (``u > u_end``) the CAE unloading deceleration is known to be
 0, so the CAE unloading branch covers every ``u`` there; a test still in contact there gives bias
 data equal to its own deceleration.
@@ -32,11 +32,11 @@ from typing import Mapping, Protocol, Sequence
 
 import numpy as np
 
-from crashfuse.domain import displacement_branches
+from crashfuse.signals.domain import displacement_branches
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
-from crashfuse.pulse import Pulse
-from crashfuse.surrogate import CATEGORIES, CAECurve, CAESurrogate
+from crashfuse.signals.pulse import Pulse
+from crashfuse.method.surrogate import CATEGORIES, CAECurve, CAESurrogate
 from crashfuse.units import G0
 
 INPUTS = ("paper", "state")

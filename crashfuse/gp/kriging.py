@@ -1,85 +1,38 @@
-"""GMM-GPR bias model: universal kriging per Gaussian-mixture cluster (paper Eq. 16-22).
+"""Universal kriging: a Gaussian process with a GLS trend (paper Eq. 16-20).
 
 Pure array code. Inputs ``X`` have shape (n, d) in whatever SI units the caller uses
-(e.g. ``[s m, v0 m/s, w_f kg, w_r kg]``); the bias ``y`` has shape (n,) in m/s^2.
-Both estimators standardise their inputs internally, so nothing here depends on units.
-The equations as implemented, and the paper's slips fixed, are in ``docs/bias-model.md``.
+(e.g. ``[s m, v0 m/s, w_f kg, w_r kg]``); the target ``y`` has shape (n,). The estimator
+standardises its inputs internally, so nothing here depends on units. The equations as
+implemented, and the paper's slips fixed, are in ``docs/bias-model.md``.
 """
 
 from __future__ import annotations
 
 import copy
-import functools
 
 import numpy as np
 from scipy.linalg import cholesky, lapack, solve_triangular
 from scipy.optimize import minimize
 from scipy.spatial.distance import cdist, pdist, squareform
-from sklearn.base import BaseEstimator, RegressorMixin, clone
-from sklearn.mixture import GaussianMixture
+from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.preprocessing import StandardScaler
 from sklearn.utils import check_random_state
-from threadpoolctl import ThreadpoolController
 from sklearn.utils.validation import check_array, check_is_fitted, check_X_y
 
-from crashfuse.errors import InputError
+from crashfuse.gp.threads import limit_blas
 
-__all__ = ["KrigingGP", "GMMGPBias", "OnsetCorrectedBias", "TooFewPointsError"]
+__all__ = ["KrigingGP", "SEED_MAX", "stratified_subset"]
 
+SEED_MAX = 2**31 - 1  # exclusive upper bound of the integer seeds handed to sub-estimators
 _TRENDS = ("zero", "constant", "linear")
 _CHUNK = 2048  # prediction points per block: bounds the (n_train, chunk) work arrays
 _JITTERS = 10.0 ** np.arange(-12, -3)  # relative jitters tried, in order, for joint draws
-_SEED_MAX = 2**31 - 1
 _FAILED = 1e300  # objective value where K is not numerically positive definite
 # The scatter refits (one per left-out test) stop at a relative likelihood change of 1e-6, not
-# scipy's 2e-9: they only size the test band. 66-fold evaluate 352 -> 327 s, scores identical,
-# coverage within 0.004. The main fit keeps the default: 1e-5 there flipped fold T04 of state K3
-# between local optima (ISO 0.77 -> 0.24).
+# scipy's 2e-9: they only size the test band. The main fit keeps scipy's default, where a
+# looser tolerance can end in another local optimum (docs/decisions.md).
 _SCATTER_LBFGS = {"ftol": 1e-6}
 _Z95 = 1.959963984540054  # two-sided 95 % normal quantile
-THETA_MAX_CANDIDATES = (1.0, 10.0, 100.0, 1000.0)  # theta upper bounds GMMGPBias chooses from by grouped CV
-# s: the onset correction is whole up to 15 ms after contact and fades out by 22 ms, where the
-# time-locked onset transients of the paper campaign have died out (docs/bias-model.md, "Onset correction").
-ONSET_WINDOW = (0.015, 0.022)
-ONSET_MAX_ROWS = 2500  # rows (stratified per test) of the base model's O(n^3) held-out residuals
-
-
-class TooFewPointsError(ValueError):
-    """Fewer bias points than :class:`GMMGPBias` needs for its clusters and their GP parameters."""
-
-
-@functools.cache
-def _controller():
-    """The BLAS thread-pool controller (built once: inspecting the libraries costs ~0.3 ms)."""
-    return ThreadpoolController()
-
-
-def blas_threads(n):
-    """Context manager running BLAS on ``n`` threads (None: unchanged).
-
-    One thread also makes results independent of the machine: a threaded matrix product sums
-    in an order that depends on the thread count, and a last-bit change can move an optimiser
-    to another local optimum (a ``paper`` K3 fold's ISO moved by 0.008).
-    """
-    return _controller().limit(limits=n, user_api="blas")
-
-
-def one_blas_thread(func):
-    """Decorator: run ``func`` under :func:`blas_threads` (1)."""
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        with blas_threads(1):
-            return func(*args, **kwargs)
-    return wrapper
-
-
-def _limit_blas(method):
-    """Run an estimator method with ``self.blas_threads`` BLAS threads."""
-    @functools.wraps(method)
-    def wrapper(self, *args, **kwargs):
-        with blas_threads(self.blas_threads):
-            return method(self, *args, **kwargs)
-    return wrapper
 
 
 def _correlation(A, B, theta):
@@ -297,7 +250,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         self.random_state = random_state
 
     # ------------------------------------------------------------------ fitting
-    @_limit_blas
+    @limit_blas
     def fit(self, X, y, groups=None):
         """Fit hyperparameters by maximum likelihood, then condition on the data.
 
@@ -326,7 +279,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
             i_fit = self._subset(len(u), self.max_fit_points, rng)
         else:
             groups = np.asarray(groups)
-            i_fit = _stratified_subset(groups, self.max_fit_points)
+            i_fit = stratified_subset(groups, self.max_fit_points)
         self._Z_hyp, self._u_hyp = Z[i_fit], u[i_fit]
         self._g_hyp = None if groups is None else groups[i_fit]
         self.n_fit_ = len(i_fit)
@@ -410,7 +363,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         _, self.theta_max_, eta, self.log_marginal_likelihood_value_ = best
         return eta
 
-    @_limit_blas
+    @limit_blas
     def grouped_cv_log_density(self, groups=None):
         """Leave-one-group-out log predictive density per point at the fitted hyperparameters.
 
@@ -437,7 +390,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         eta = np.log(np.r_[self.theta_, self.nugget_])
         return self._grouped_cv(eta, self._Z_hyp, self._u_hyp, g)
 
-    @_limit_blas
+    @limit_blas
     def grouped_residuals(self, X, y, groups):
         """Leave-one-group-out residuals at the fitted hyperparameters, conditioned on ``(X, y)``.
 
@@ -673,7 +626,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         if self.beta_.size:
             self.beta_[0] += self._y_mean
 
-    @_limit_blas
+    @limit_blas
     def log_marginal_likelihood(self, params, eval_gradient=False):
         """Concentrated log-likelihood on the hyperparameter-fit data.
 
@@ -716,7 +669,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         W = solve_triangular(self._LM, U, lower=True, check_finite=False)
         return mean, V, W
 
-    @_limit_blas
+    @limit_blas
     def predict(self, X, return_std=False, include_noise=False):
         """Predictive mean, and optionally the standard deviation (Eq. 19-20 corrected).
 
@@ -751,7 +704,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
             return mean
         return mean, (np.concatenate(stds) if stds else np.empty(0)) * self._y_std
 
-    @_limit_blas
+    @limit_blas
     def predict_cov(self, X):
         """Joint predictive mean and covariance of the latent function (no nugget).
 
@@ -772,7 +725,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         cov = _correlation(Zs, Zs, self.theta_) - V.T @ V + W.T @ W
         return mean * self._y_std + self._y_mean, cov * (self._sigma2 * self._y_std**2)
 
-    @_limit_blas
+    @limit_blas
     def sample_functions(self, X, n_samples=1, random_state=None):
         """Joint draws of the latent bias function (no nugget) at the points ``X``.
 
@@ -798,7 +751,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         return (mean[:, None] + Lc @ z).T
 
 
-def _stratified_subset(groups, limit):
+def stratified_subset(groups, limit):
     """Deterministic subset: about ``limit`` rows, evenly spaced within each group, sorted.
 
     Parameters
@@ -842,458 +795,3 @@ def _jittered_cholesky(cov):
             continue
     raise np.linalg.LinAlgError("predictive covariance is not positive semi-definite even with "
                                 f"a jitter of {_JITTERS[-1]:g} x its mean variance")
-
-
-class GMMGPBias(RegressorMixin, BaseEstimator):
-    """The paper's bias model: a Gaussian mixture over the inputs and one KrigingGP per cluster.
-
-    Parameters
-    ----------
-    n_clusters : int
-        Mixture components K.
-    cluster_inputs : sequence of int or None
-        Columns of ``X`` the mixture sees (default all).
-    assignment : {'select', 'blend'}
-        ``'select'``: the GP of the most responsible cluster (paper section 3.2).
-        ``'blend'``: responsibility-weighted mean of the cluster GPs (paper introduction).
-    trend, theta_bounds, nugget_bounds, n_restarts, theta_max_candidates, calibrate_variance, estimate_scatter
-        Passed to every cluster's :class:`KrigingGP`. The last three act only when ``fit`` gets
-        ``groups``; their defaults here (choose the theta bound among ``THETA_MAX_CANDIDATES``,
-        calibrate the band by grouped leave-one-test-out, estimate the test-to-test scatter by
-        grouped refits) are the bias model's, see
-        ``docs/bias-model.md``.
-    max_fit_points, max_condition_points, normalize_y, blas_threads
-        Passed to every cluster's :class:`KrigingGP` (``blas_threads`` also limits the
-        mixture, the OpenMP threads of its k-means initialisation, and the prediction methods
-        here). ``max_*`` apply per cluster.
-    n_init : int
-        GaussianMixture initialisations.
-    reg_covar : float
-        Covariance floor on the standardised inputs (v0 and the weights are constant within
-        a test, so a one-test cluster has zero variance there).
-    min_cluster_points : int or None
-        Clusters with fewer hard-assigned points are merged into the cluster whose mixture
-        mean is nearest (standardised inputs), smallest first. ``None``: three times the
-        number of GP parameters (trend + d theta + nugget + sigma^2).
-    pooled : bool
-        With more than one cluster: first fit one GP on every point (the K = 1 model, this
-        model's trend), then the cluster GPs on its residual without a trend, and predict their
-        sum. Where a cluster's few tests say nothing the residual reverts to 0, so the
-        prediction to the pooled GP's, not to the cluster's trend; the test-to-test scatter
-        is the pooled GP's (the residual GPs estimate none). ``False``: the paper's clusters, each
-        GP on its own points' bias.
-    random_state : int, RandomState or None
-        Seeds the mixture and the GPs.
-
-    Attributes
-    ----------
-    scaler_ : StandardScaler
-        Standardisation of the clustering inputs.
-    gmm_ : GaussianMixture
-    pooled_gp_ : KrigingGP or None
-        The GP on every point (``pooled`` with more than one cluster), else None.
-    gps_ : list of KrigingGP
-        One per surviving cluster (on the pooled GP's residual when ``pooled_gp_`` is set).
-    component_to_gp_ : ndarray of int, shape (n_clusters,)
-        Which GP each mixture component's points and responsibility go to.
-    n_points_per_cluster_ : ndarray of int, shape (len(gps_),)
-    labels_ : ndarray of int, shape (n,)
-        GP index of each training point.
-    """
-
-    def __init__(self, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
-                 theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0), n_restarts=2,
-                 max_fit_points=300, max_condition_points=None, normalize_y=True, n_init=5,
-                 reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None,
-                 theta_max_candidates=THETA_MAX_CANDIDATES, calibrate_variance=True, estimate_scatter=True,
-                 pooled=False):
-        self.pooled = pooled
-        self.theta_max_candidates = theta_max_candidates
-        self.calibrate_variance = calibrate_variance
-        self.estimate_scatter = estimate_scatter
-        self.n_clusters = n_clusters
-        self.cluster_inputs = cluster_inputs
-        self.assignment = assignment
-        self.trend = trend
-        self.theta_bounds = theta_bounds
-        self.nugget_bounds = nugget_bounds
-        self.n_restarts = n_restarts
-        self.max_fit_points = max_fit_points
-        self.max_condition_points = max_condition_points
-        self.normalize_y = normalize_y
-        self.n_init = n_init
-        self.reg_covar = reg_covar
-        self.min_cluster_points = min_cluster_points
-        self.blas_threads = blas_threads
-        self.random_state = random_state
-
-    def _gp(self, seed, trend=None, estimate_scatter=None):
-        """An unfitted GP with this model's settings (``trend`` and ``estimate_scatter`` overridable)."""
-        return KrigingGP(trend=self.trend if trend is None else trend, theta_bounds=self.theta_bounds,
-                         nugget_bounds=self.nugget_bounds, n_restarts=self.n_restarts,
-                         max_fit_points=self.max_fit_points,
-                         max_condition_points=self.max_condition_points,
-                         normalize_y=self.normalize_y, blas_threads=self.blas_threads,
-                         random_state=seed, theta_max_candidates=self.theta_max_candidates,
-                         calibrate_variance=self.calibrate_variance,
-                         estimate_scatter=self.estimate_scatter if estimate_scatter is None else estimate_scatter)
-
-    def _min_points(self, d):
-        """Smallest cluster that keeps its own GP."""
-        if self.min_cluster_points is not None:
-            return int(self.min_cluster_points)
-        p = (self.trend != "zero") + (d if self.trend == "linear" else 0)
-        return 3 * (p + d + 2)
-
-    @_limit_blas
-    def fit(self, X, y, groups=None):
-        """Fit scaler and mixture on ``X``, then one KrigingGP per (merged) cluster.
-
-        Parameters
-        ----------
-        X : array_like, shape (n, d)
-        y : array_like, shape (n,)
-            Bias, m/s^2.
-        groups : array_like, shape (n,), optional
-            Test of each row, passed to the cluster GPs (:meth:`KrigingGP.fit`).
-
-        Returns
-        -------
-        self
-        """
-        if self.assignment not in ("select", "blend"):
-            raise ValueError(f"assignment must be 'select' or 'blend', got {self.assignment!r}")
-        X, y = check_X_y(X, y, y_numeric=True)
-        self.n_features_in_ = X.shape[1]
-        need = self._min_points(X.shape[1])
-        if len(y) < max(need, self.n_clusters):
-            raise TooFewPointsError(f"GMMGPBias needs at least {max(need, self.n_clusters)} bias points "
-                                    f"(min_cluster_points={need}, n_clusters={self.n_clusters}), got {len(y)}")
-        rng = check_random_state(self.random_state)
-        C = self._cluster_view(X, fit=True)
-        # The mixture keeps only the labels of its k-means start, so its OpenMP threads change
-        # nothing but the cost: on the shared 2-core machine they spent 5-10x the CPU of one
-        # thread (K = 3: 1.1 s vs 0.19 s per fit).
-        with _controller().limit(limits=self.blas_threads, user_api="openmp"):
-            self.gmm_ = GaussianMixture(self.n_clusters, covariance_type="full", n_init=self.n_init,
-                                        reg_covar=self.reg_covar,
-                                        random_state=rng.randint(_SEED_MAX)).fit(C)
-        self.component_to_gp_ = self._merge(self.gmm_.predict(C), need)
-        self.labels_ = self.component_to_gp_[self.gmm_.predict(C)]
-        n_gps = self.component_to_gp_.max() + 1
-        self.n_points_per_cluster_ = np.bincount(self.labels_, minlength=n_gps)
-        groups = None if groups is None else np.asarray(groups)
-        self.pooled_gp_ = None
-        if self.pooled and n_gps > 1:
-            self.pooled_gp_ = self._gp(rng.randint(_SEED_MAX)).fit(X, y, groups)
-            y = y - self.pooled_gp_.predict(X)
-        residual = {"trend": "zero", "estimate_scatter": False} if self.pooled_gp_ is not None else {}
-        self.gps_ = [self._gp(rng.randint(_SEED_MAX), **residual).fit(
-            X[self.labels_ == g], y[self.labels_ == g], None if groups is None else groups[self.labels_ == g])
-            for g in range(n_gps)]
-        return self
-
-    def _cluster_view(self, X, fit=False):
-        """Standardised clustering columns of ``X``, shape (n, d_cluster)."""
-        cols = list(range(X.shape[1])) if self.cluster_inputs is None else list(self.cluster_inputs)
-        if fit:
-            self.scaler_ = StandardScaler().fit(X[:, cols])
-        return self.scaler_.transform(X[:, cols])
-
-    def _merge(self, labels, need):
-        """Map mixture components to GPs, merging clusters smaller than ``need`` points.
-
-        Parameters
-        ----------
-        labels : ndarray of int, shape (n,)
-            Hard mixture assignment of the training points.
-        need : int
-
-        Returns
-        -------
-        ndarray of int, shape (n_clusters,)
-            GP index (0..n_gps-1, in component order) of each component.
-        """
-        owner = np.arange(self.n_clusters)
-        means = self.gmm_.means_
-        while True:
-            counts = np.bincount(owner[labels], minlength=self.n_clusters)
-            roots = np.flatnonzero(owner == np.arange(self.n_clusters))  # components owning a GP
-            small = roots[counts[roots] < need]  # includes components with no points at all
-            if len(small) == 0 or len(roots) == 1:
-                break
-            c = small[np.argmin(counts[small])]
-            others = roots[roots != c]
-            owner[owner == c] = others[np.argmin(np.linalg.norm(means[others] - means[c], axis=1))]
-        return np.unique(owner, return_inverse=True)[1]
-
-    def predict_responsibilities(self, X):
-        """Mixture responsibilities summed per GP (merged components add up).
-
-        Parameters
-        ----------
-        X : array_like, shape (m, d)
-
-        Returns
-        -------
-        ndarray, shape (m, len(gps_))
-            Rows sum to one.
-        """
-        check_is_fitted(self)
-        X = check_array(X)
-        resp = self.gmm_.predict_proba(self._cluster_view(X))
-        out = np.zeros((len(X), len(self.gps_)))
-        np.add.at(out.T, self.component_to_gp_, resp.T)
-        return out
-
-    def _weights(self, X):
-        """Per-GP weights of the assignment rule, shape (m, len(gps_))."""
-        resp = self.predict_responsibilities(X)
-        if self.assignment == "blend":
-            return resp
-        return np.eye(len(self.gps_))[np.argmax(resp, axis=1)]
-
-    @_limit_blas
-    def predict(self, X, return_std=False):
-        """Bias prediction by the assignment rule.
-
-        Parameters
-        ----------
-        X : array_like, shape (m, d)
-        return_std : bool
-            Latent-function std: the selected GP's (``select``) or the mixture's
-            ``sqrt(sum_k w_k (s_k^2 + mu_k^2) - mu^2)`` (``blend``).
-
-        Returns
-        -------
-        mean : ndarray, shape (m,)
-        std : ndarray, shape (m,), only if ``return_std``
-            With a pooled GP, its variance is added (the two GPs are independent).
-        """
-        X = check_array(X)
-        w = self._weights(X)
-        pooled = self._pooled(X, return_std)
-        mean, second = np.zeros(len(X)), np.zeros(len(X))
-        for g, gp in enumerate(self.gps_):
-            use = w[:, g] > 0
-            if not use.any():
-                continue
-            if not return_std:
-                mean[use] += w[use, g] * gp.predict(X[use])
-                continue
-            mu, sd = gp.predict(X[use], return_std=True)
-            mean[use] += w[use, g] * mu
-            second[use] += w[use, g] * (sd**2 + mu**2)
-        if not return_std:
-            return mean + pooled
-        return mean + pooled[0], np.sqrt(np.clip(second - mean**2, 0.0, None) + pooled[1] ** 2)
-
-    def _pooled(self, X, return_std=False):
-        """The pooled GP's mean (and std) at ``X``; zeros without one."""
-        if self.pooled_gp_ is None:
-            return (np.zeros(len(X)), np.zeros(len(X))) if return_std else np.zeros(len(X))
-        return self.pooled_gp_.predict(X, return_std=return_std)
-
-    def grouped_residuals(self, X, y, groups):
-        """Leave-one-test-out residuals of the bias model at fixed hyperparameters (y units).
-
-        The pooled GP's when there is one (the cluster GPs on its residual are not refitted), else
-        each GP's (:meth:`KrigingGP.grouped_residuals`) on the rows it is selected for.
-
-        Parameters
-        ----------
-        X : array_like, shape (n, d)
-        y : array_like, shape (n,)
-        groups : array_like, shape (n,)
-
-        Returns
-        -------
-        ndarray, shape (n,) or None
-            None where a GP's rows come from a single test or its matrices are singular.
-        """
-        X, y, groups = check_array(X), np.asarray(y, dtype=float), np.asarray(groups)
-        if self.pooled_gp_ is not None:
-            return self.pooled_gp_.grouped_residuals(X, y, groups)
-        pick = np.argmax(self.predict_responsibilities(X), axis=1)
-        out = np.zeros(len(y))
-        for g, gp in enumerate(self.gps_):
-            rows = pick == g
-            if not rows.any():
-                continue
-            res = gp.grouped_residuals(X[rows], y[rows], groups[rows]) if len(set(groups[rows])) > 1 else None
-            if res is None:
-                return None
-            out[rows] = res
-        return out
-
-    def scatter_std(self, X):
-        """Test-to-test scatter std at ``X`` (y units): what a new test adds to the latent band.
-
-        ``select``: the selected GP's ``sqrt(scatter_var_)``; ``blend``: ``sqrt(sum_k w_k s_k^2)``;
-        with a pooled GP, the pooled GP's.
-
-        Parameters
-        ----------
-        X : array_like, shape (m, d)
-
-        Returns
-        -------
-        ndarray, shape (m,)
-        """
-        if self.pooled_gp_ is not None:
-            return np.full(len(X), np.sqrt(self.pooled_gp_.scatter_var_))
-        if not all(hasattr(gp, "scatter_var_") for gp in self.gps_):
-            raise InputError("this bias model was fitted before the test-to-test scatter existed: refit it, or "
-                             "ask for the latent band (--band latent)", field="band")
-        w = self._weights(check_array(X))
-        return np.sqrt(w @ np.array([gp.scatter_var_ for gp in self.gps_]))
-
-    @_limit_blas
-    def sample_functions(self, X, n_samples=1, random_state=None):
-        """Joint draws of the bias function at ``X``, combined by the assignment rule.
-
-        Each GP is drawn jointly (no nugget) on the points where its weight is non-zero;
-        ``select`` takes the selected GP's draw at each point, ``blend`` the
-        responsibility-weighted sum of the independent per-GP draws (whose spread is
-        ``sqrt(sum_k w_k^2 s_k^2)``, narrower than the mixture std of ``predict``). A pooled
-        GP's joint draw is added.
-
-        Parameters
-        ----------
-        X : array_like, shape (m, d)
-        n_samples : int
-        random_state : int, RandomState or None
-
-        Returns
-        -------
-        ndarray, shape (n_samples, m)
-        """
-        X = check_array(X)
-        w = self._weights(X)
-        rng = check_random_state(random_state)
-        out = np.zeros((n_samples, len(X)))
-        for g, gp in enumerate(self.gps_):
-            use = w[:, g] > 0
-            seed = rng.randint(_SEED_MAX)  # drawn for every GP so seeds don't depend on X
-            if use.any():
-                out[:, use] += w[use, g] * gp.sample_functions(X[use], n_samples, seed)
-        if self.pooled_gp_ is not None:
-            out += self.pooled_gp_.sample_functions(X, n_samples, rng.randint(_SEED_MAX))
-        return out
-
-
-class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
-    """A bias model plus a correction of its held-out error early in the pulse, over time since contact.
-
-    Features locked in time after contact (the onset transients of structure and instrumentation)
-    move with the impact speed in displacement, so a GP over the branch coordinate interpolates
-    them between tests out of phase. The base model's leave-one-test-out residuals expose that
-    error; a zero-mean GP over the nominal time since contact learns it from the rows earlier
-    than ``window[1]`` and its mean is added to the base model's, whole up to ``window[0]`` and
-    faded out by ``window[1]`` (cos^2). The correction is a point estimate: bands, draws'
-    spread and scatter stay the base model's (its band is calibrated on the same held-out
-    residuals).
-
-    Parameters
-    ----------
-    base : estimator
-        The bias model (:class:`GMMGPBias`), cloned and fitted on all rows.
-    time : callable
-        Maps inputs ``X`` (m, d) to the nominal time since contact in s, shape (m,)
-        (:func:`crashfuse.projection.nominal_time`); picklable.
-    window : (float, float)
-        Times (s) where the correction starts to fade and where it is gone.
-    max_rows : int
-        At most this many rows (evenly spaced within each test) enter the residuals.
-    blas_threads : int or None
-        BLAS threads of the correction GP.
-    random_state : int, RandomState or None
-        Seeds the correction GP.
-
-    Attributes
-    ----------
-    base_ : estimator
-        The fitted base model.
-    onset_gp_ : KrigingGP or None
-        The correction GP over time (s); None when fewer than three tests reach the window or
-        the residuals could not be computed (no correction).
-    """
-
-    def __init__(self, base=None, time=None, window=ONSET_WINDOW, max_rows=ONSET_MAX_ROWS, blas_threads=1,
-                 random_state=None):
-        self.base = base
-        self.time = time
-        self.window = window
-        self.max_rows = max_rows
-        self.blas_threads = blas_threads
-        self.random_state = random_state
-
-    def fit(self, X, y, groups):
-        """Fit the base model on every row, then the correction GP on its held-out residuals.
-
-        Parameters
-        ----------
-        X : array_like, shape (n, d)
-        y : array_like, shape (n,)
-        groups : array_like, shape (n,)
-            Test of each row.
-
-        Returns
-        -------
-        self
-        """
-        X, y = check_X_y(X, y, y_numeric=True)
-        groups = np.asarray(groups)
-        self.base_ = clone(self.base).fit(X, y, groups)
-        self.onset_gp_ = None
-        rows = _stratified_subset(groups, self.max_rows)
-        t = np.asarray(self.time(X[rows]), dtype=float)
-        early = t < self.window[1]
-        if len(np.unique(groups[rows][early])) < 3:
-            return self
-        res = self.base_.grouped_residuals(X[rows], y[rows], groups[rows])
-        if res is not None:
-            # Every early row enters the likelihood: a 1-D GP on a few hundred rows is cheap, and on a
-            # 300-row subset some seeds' restarts stopped in a flat optimum (no correction).
-            gp = KrigingGP(trend="zero", max_fit_points=None, estimate_scatter=False,
-                           blas_threads=self.blas_threads, random_state=self.random_state)
-            self.onset_gp_ = gp.fit(t[early, None], res[early], groups[rows][early])
-        return self
-
-    @property
-    def gps_(self):
-        """The base model's GPs."""
-        return self.base_.gps_
-
-    def correction(self, X):
-        """The onset correction at ``X`` (y units), shape (m,): 0 from ``window[1]`` on."""
-        check_is_fitted(self)
-        X = check_array(X)
-        if self.onset_gp_ is None:
-            return np.zeros(len(X))
-        t = np.asarray(self.time(X), dtype=float)
-        fade = np.cos(0.5 * np.pi * np.clip((t - self.window[0]) / (self.window[1] - self.window[0]), 0.0, 1.0)) ** 2
-        out = np.zeros(len(X))
-        on = fade > 0
-        if on.any():
-            out[on] = fade[on] * self.onset_gp_.predict(t[on, None])
-        return out
-
-    def predict(self, X, return_std=False):
-        """Base prediction plus the correction; ``std`` (if asked) is the base model's."""
-        if not return_std:
-            return self.base_.predict(X) + self.correction(X)
-        mean, std = self.base_.predict(X, return_std=True)
-        return mean + self.correction(X), std
-
-    def sample_functions(self, X, n_samples=1, random_state=None):
-        """The base model's joint draws, each plus the correction, shape (n_samples, m)."""
-        return self.base_.sample_functions(X, n_samples, random_state) + self.correction(X)
-
-    def scatter_std(self, X):
-        """The base model's test-to-test scatter std, shape (m,)."""
-        return self.base_.scatter_std(X)
-
-    def predict_responsibilities(self, X):
-        """The base model's mixture responsibilities, shape (m, len(gps_))."""
-        return self.base_.predict_responsibilities(X)

@@ -9,14 +9,14 @@ curves can be read off a single test:
 * ``F(t)``: the sum of the barrier's load-cell X forces (:func:`crashfuse.io.nhtsa.read_barrier_force`),
   CFC 60 over the full record, as the campaign reader filters the vehicle pulse;
 * ``s(t)``: the crush integrated from the vehicle pulse (rear-seat crossmember, CFC 60) by
-  :func:`crashfuse.domain.displacement_branches`, the integrator of the method itself;
+  :func:`crashfuse.signals.domain.displacement_branches`, the integrator of the method itself;
 * the loading curve is ``F`` at the loading-branch samples against ``s``; the unloading curve
   is ``F`` at the unloading-branch samples against ``u``, cut where the force first reaches zero
   (the vehicle leaves the barrier);
 * ``M`` is the test weight of the EV5 header (VEHICLE VEHTWT), checked against the impulse
   mass ``int_0^t_stop F dt / v0`` (the momentum the barrier took to stop the vehicle).
 
-Rolled out from the test's impact speed with :func:`crashfuse.dynamics.rollout` this gives the
+Rolled out from the test's impact speed with :func:`crashfuse.signals.dynamics.rollout` this gives the
 pulse a perfect single-mass CAE model would give. Where the vehicle is not one rigid mass (the
 powertrain and the crushed front end stop before the rear body does) ``F / M`` differs from the
 crossmember deceleration; :func:`momentum_lag` measures by how much. See docs/barrier-model.md.
@@ -30,15 +30,15 @@ from pathlib import Path
 
 import numpy as np
 
-from crashfuse.domain import displacement_branches
-from crashfuse.dynamics import State, Trajectory, rollout
+from crashfuse.signals.domain import displacement_branches
+from crashfuse.signals.dynamics import State, Trajectory, rollout
 from crashfuse.errors import InputError
-from crashfuse.filters import cfc_filter
+from crashfuse.signals.filters import cfc_filter
 from crashfuse.io.campaign import Campaign, prepare_pulse, write_campaign
 from crashfuse.io.nhtsa import read_barrier_force, read_header, read_nhtsa
-from crashfuse.iso18571 import iso_score
-from crashfuse.metrics import pulse_metrics
-from crashfuse.pulse import Pulse
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.signals.metrics import pulse_metrics
+from crashfuse.signals.pulse import Pulse
 
 CFC = 60  # the class of campaign pulses: force and vehicle pulse are filtered alike
 ISO_WINDOWS_MS = ((0, 20), (0, 40), (0, 60))
@@ -91,7 +91,7 @@ def fit_single_mass(time, force, pulse: Pulse, mass: float) -> SingleMassModel:
         Barrier force on the vehicle in N, positive while pushing it back, filtered as ``pulse``.
     pulse : Pulse
         Vehicle pulse (deceleration in m/s^2); its crush comes from
-        :func:`crashfuse.domain.displacement_branches`.
+        :func:`crashfuse.signals.domain.displacement_branches`.
     mass : float
         M in kg.
 
@@ -254,7 +254,7 @@ def compare(result: BarrierModel) -> dict:
         ``test``, ``cae_run_id``; ``mass_kg`` (``test_weight_vehtwt``, ``impulse``, their
         ``ratio`` impulse / test weight); ``iso`` (window label ``"0-20"`` ... -> the ISO/TS
         18571 scores of the single-mass pulse against the measured one); ``measured`` and
-        ``single_mass`` (:func:`crashfuse.metrics.pulse_metrics` of each, g, ms, mm, km/h);
+        ``single_mass`` (:func:`crashfuse.signals.metrics.pulse_metrics` of each, g, ms, mm, km/h);
         ``momentum_lag`` (peak and end of :func:`momentum_lag`, N s, and the peak's time, ms);
         ``energy_kJ``: the kinetic energy ``M v0^2 / 2`` against the work of the barrier force
         along the measured crush to its maximum (equal for one rigid mass), and their ratio.

@@ -28,7 +28,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from crashfuse.errors import InputError
-from crashfuse.report import (BASELINE, CONDITIONS, FOLD_SUFFIX, ISO_TABLE, SCORES, FoldRecord, read_fold_json,
+from crashfuse.reporting.tables import (BASELINE, CONDITIONS, FOLD_SUFFIX, ISO_TABLE, SCORES, FoldRecord, read_fold_json,
                               read_iso_table, window_key)
 
 DEFAULT_DB = "mlflow.db"

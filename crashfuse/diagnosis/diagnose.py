@@ -1,8 +1,8 @@
 """Sim-to-real gap diagnosis (issue 6): where the gap lies, which effect causes it, how far it shrinks.
 
-1. Where: :func:`crashfuse.gap.locate_gap` (the bias field and its significant regions).
-2. Which: every catalogue effect of :mod:`crashfuse.effects` is a force law added to the CAE
-   dynamics with a few physical parameters, fitted to the tests (:mod:`crashfuse.effect_fit`).
+1. Where: :func:`crashfuse.diagnosis.gap.locate_gap` (the bias field and its significant regions).
+2. Which: every catalogue effect of :mod:`crashfuse.diagnosis.laws` is a force law added to the CAE
+   dynamics with a few physical parameters, fitted to the tests (:mod:`crashfuse.diagnosis.effect_fit`).
    Effects are compared on held-out evidence: the leave-one-test-out mean squared error of the
    CAE + effects rollout against the held-out test over its record. Greedy forward selection: each
    round fits every remaining effect together with those already chosen (all folds at once) and
@@ -28,17 +28,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from crashfuse.bias import one_blas_thread
-from crashfuse.effect_fit import DT, FoldFits, TestCase, effect_params, fit_folds, loto_sets, predict, test_case
-from crashfuse.effects import EFFECTS, V_REF, check_effect, headline
+from crashfuse.gp.threads import one_blas_thread
+from crashfuse.diagnosis.effect_fit import DT, FoldFits, TestCase, effect_params, fit_folds, loto_sets, predict, test_case
+from crashfuse.diagnosis.laws import EFFECTS, V_REF, check_effect, headline
 from crashfuse.errors import InputError
-from crashfuse.gap import locate_gap
+from crashfuse.diagnosis.gap import locate_gap
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import Campaign
-from crashfuse.iso18571 import iso_score
-from crashfuse.pulse import Pulse
-from crashfuse.report import SCORES, WINDOWS, window_bounds
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.signals.pulse import Pulse
+from crashfuse.reporting.tables import SCORES, WINDOWS, window_bounds
+from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MPH, MS
 
 THRESHOLD = 0.10  # relative drop of the held-out mean squared error an effect must bring
@@ -84,7 +84,7 @@ class Diagnosis:
     predictions: dict  # model -> (n_tests, n_t) decel m/s^2 on case.time (CAE, CAE+effects)
     settings: dict
     holdout: bool
-    gap: object = None  # crashfuse.gap.GapMap (None for a single test)
+    gap: object = None  # crashfuse.diagnosis.gap.GapMap (None for a single test)
 
     def to_json(self) -> dict:
         mean = self.shrink.groupby(["model", "window_ms"], sort=False)["overall"].mean()
@@ -130,7 +130,7 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     residual_model : bool
         Compute the two GMM-GPR rows of the shrink table (the slow part).
     regions : bool
-        Locate the gap (:func:`crashfuse.gap.locate_gap`, with the same ``k``); needs two tests.
+        Locate the gap (:func:`crashfuse.diagnosis.gap.locate_gap`, with the same ``k``); needs two tests.
     progress : callable or None
 
     Raises
@@ -229,7 +229,7 @@ def _shrink(campaign, case, preds, fits, k, inputs, n_samples, random_state, sur
         for i, t in enumerate(case.test_ids):
             rows += _iso_rows(campaign.pulses[t], case.time, decel[i], t, model)
     if residual:
-        from crashfuse.evaluate import evaluate
+        from crashfuse.evaluation.loto import evaluate
         label = f"K{k}"
         say("diagnose: GMM-GPR alone (leave-one-test-out)")
         quick = dict(n_jobs=1, surrogate=surrogate, progress=None, use_companion=True,
@@ -348,7 +348,7 @@ def write_diagnosis(diag: Diagnosis, out, campaign: Campaign) -> Path:
     Every file is written atomically; ``diagnosis.json`` last, so its presence marks a complete
     diagnosis.
     """
-    from crashfuse import plots
+    from crashfuse.reporting import plots
 
     out = Path(out)
     (out / "figures").mkdir(parents=True, exist_ok=True)

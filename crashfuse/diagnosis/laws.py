@@ -53,8 +53,8 @@ import dataclasses
 
 import numpy as np
 
-from crashfuse.domain import displacement_branches
-from crashfuse.dynamics import State, Trajectory, rollout
+from crashfuse.signals.domain import displacement_branches
+from crashfuse.signals.dynamics import State, Trajectory, rollout
 from crashfuse.errors import InputError
 
 EFFECTS = ("damping", "strain_rate", "powertrain", "unloading", "mass")
@@ -131,7 +131,7 @@ class Plant:
     @classmethod
     def from_curves(cls, curves, mass, group, labels, s_hi: float, faster=None, force_rate=None,
                     n_s: int = 2048, n_u: int = 512) -> "Plant":
-        """Tabulate CAE curves (:class:`crashfuse.surrogate.CAECurve`) up to crush ``s_hi`` (m).
+        """Tabulate CAE curves (:class:`crashfuse.method.surrogate.CAECurve`) up to crush ``s_hi`` (m).
 
         ``faster``, if given, holds per curve a CAE curve of the same vehicle at a higher impact
         speed (or None): the reference beyond the curve's maximum crush (:func:`_reference`).
@@ -316,7 +316,7 @@ def decel_fn(plant: Plant, effects, theta: dict):
     Returns
     -------
     callable
-        ``State -> ndarray, shape (n,)`` deceleration in m/s^2 for :func:`crashfuse.dynamics.rollout`.
+        ``State -> ndarray, shape (n,)`` deceleration in m/s^2 for :func:`crashfuse.signals.dynamics.rollout`.
     """
     effects = set(effects)
     pt = _powertrain_arrays(plant, theta) if "powertrain" in effects else None
@@ -362,7 +362,7 @@ def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Tra
 
     Returns
     -------
-    crashfuse.dynamics.Trajectory
+    crashfuse.signals.dynamics.Trajectory
         ``n`` samples, ``n_steps + 1`` times from contact, step ``dt`` (s).
     """
     return rollout(decel_fn(plant, effects, theta), plant.v0, dt, n_steps)

@@ -236,7 +236,7 @@ def table2_latex(frame: pd.DataFrame, inputs: str, score: str = "overall", digit
     n = len(table.columns)
     windows = " & ".join(f"({a}, {b})" for a, b in map(window_bounds, table.columns))
     lines = [
-        f"% {score} ISO score, {_tex_escape(inputs)} inputs (crashfuse.report)",
+        f"% {score} ISO score, {_tex_escape(inputs)} inputs (crashfuse.reporting.tables)",
         rf"\begin{{tabular}}{{ll{'r' * n}}}",
         r"\toprule",
         rf"Test & Model & \multicolumn{{{n}}}{{c}}{{ISO score, time period in ms}} \\",

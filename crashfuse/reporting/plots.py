@@ -6,7 +6,7 @@ shows the ISO score of every held-out test for CAE and each cluster count K, one
 mode. Figures are built on a bare ``matplotlib.figure.Figure`` (Agg canvas, no pyplot state) and
 saved as PNG without a Software/time stamp, atomically, so equal inputs give equal bytes.
 The gap figures (:func:`bias_map_figure`, :func:`gap_pulses_figure`) draw a
-:class:`crashfuse.gap.GapMap`.
+:class:`crashfuse.diagnosis.gap.GapMap`.
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from matplotlib.patches import Patch
 from crashfuse.errors import InputError
 from crashfuse.io.tables import read_table
 from crashfuse.io.atomic import atomic_path
-from crashfuse.pulse import Pulse
-from crashfuse.report import (BASELINE, INPUTS, SCORES, model_order, natural_key, read_iso_table, table2, table_file,
+from crashfuse.signals.pulse import Pulse
+from crashfuse.reporting.tables import (BASELINE, INPUTS, SCORES, model_order, natural_key, read_iso_table, table2, table_file,
                               window_bounds)
 from crashfuse.units import G0, MM, MPH, MS
 
@@ -162,7 +162,7 @@ def iso_summary_figure(frame: pd.DataFrame, window: str = "0-60", score: str = "
     Parameters
     ----------
     frame : pandas.DataFrame
-        A validated ISO table (see `crashfuse.report.read_iso_table`).
+        A validated ISO table (see `crashfuse.reporting.tables.read_iso_table`).
     window : str
         The ``window_ms`` label to show.
     score : str
@@ -238,7 +238,7 @@ def bias_map_figure(gap) -> Figure:
 
     Parameters
     ----------
-    gap : crashfuse.gap.GapMap
+    gap : crashfuse.diagnosis.gap.GapMap
 
     Returns
     -------
@@ -277,7 +277,7 @@ def gap_pulses_figure(gap, t_end: float = T_END) -> Figure:
 
     Parameters
     ----------
-    gap : crashfuse.gap.GapMap
+    gap : crashfuse.diagnosis.gap.GapMap
     t_end : float
         Time span shown, s.
 
@@ -328,7 +328,7 @@ def effect_pulses_figure(campaign, diagnosis, t_end: float = T_END) -> Figure:
     Parameters
     ----------
     campaign : crashfuse.io.campaign.Campaign
-    diagnosis : crashfuse.diagnose.Diagnosis
+    diagnosis : crashfuse.diagnosis.diagnose.Diagnosis
     """
     ids = diagnosis.case.test_ids
     cols = min(4, len(ids))

@@ -2,11 +2,11 @@
 
 Each of ``m`` samples carries a state: displacement ``s`` (m), velocity ``v`` (m/s), maximum
 crush so far ``s_max`` (m), its branch and whether it has separated from the barrier. Steps use
-:func:`crashfuse.domain.position_step` / :func:`crashfuse.domain.velocity_step` (velocity
+:func:`crashfuse.signals.domain.position_step` / :func:`crashfuse.signals.domain.velocity_step` (velocity
 Verlet), the integrator that turned the data into the displacement domain, so a rollout whose
 deceleration is a pulse's own branch curves gives that pulse back.
 
-Branches follow :func:`crashfuse.domain.displacement_branches`:
+Branches follow :func:`crashfuse.signals.domain.displacement_branches`:
 
 * loading while the displacement advances beyond every earlier one (``x = s``);
 * the first step where it does not (the velocity has reached zero: maximum crush) switches the
@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from crashfuse.domain import position_step, velocity_step
+from crashfuse.signals.domain import position_step, velocity_step
 from crashfuse.errors import InputError
 
 

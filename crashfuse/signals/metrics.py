@@ -4,7 +4,7 @@ Filter classes (the issue's rules, after SAE J211-1's recommendations): the peak
 read from the CFC 60 pulse; velocity and displacement come from integrating the CFC 180 pulse.
 A raw pulse (``meta['cfc']`` None) is filtered with each class over the FULL record, pre-impact
 samples included, and cropped at t = 0 afterwards. A pulse already at CFC 60 (campaign data) is
-used as it is for both. Integration is :func:`crashfuse.domain.kinematics` (velocity Verlet,
+used as it is for both. Integration is :func:`crashfuse.signals.domain.kinematics` (velocity Verlet,
 trapezoidal velocity), the same integrator the displacement domain and the rollout use.
 Everything is computed in SI; the returned dict carries report units (g, ms, mm, km/h).
 Definitions in full: ``docs/metrics.md``.
@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from crashfuse.domain import displacement_branches, kinematics
-from crashfuse.filters import filter_pulse
-from crashfuse.pulse import Pulse
+from crashfuse.signals.domain import displacement_branches, kinematics
+from crashfuse.signals.filters import filter_pulse
+from crashfuse.signals.pulse import Pulse
 from crashfuse.units import G0, KMH, MM, MS
 
 PEAK_CFC = 60
@@ -40,7 +40,7 @@ def pulse_metrics(pulse: Pulse) -> dict:
         ``run_id``; ``peak_decel_g`` (max CFC 60 deceleration after contact, g); ``t_peak_ms``
         (its time, ms); ``t_zero_velocity_ms`` (first time the CFC 180 velocity reaches zero,
         linearly interpolated, ms); ``dynamic_crush_mm`` (maximum displacement, reached there,
-        mm; both from :func:`crashfuse.domain.displacement_branches`);
+        mm; both from :func:`crashfuse.signals.domain.displacement_branches`);
         ``rebound_kmh`` (largest rearward velocity within 200 ms of contact, positive, km/h; 0
         if none); ``restitution`` (rebound / impact speed); ``olc_g`` (occupant load criterion,
         g). A quantity the record does not reach (no zero velocity, an occupant that never

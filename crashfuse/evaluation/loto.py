@@ -3,12 +3,12 @@
 For every input mode, every K and every test of the campaign, one fold: the bias models are fitted
 on the other tests only (the CAE surrogate is fitted ONCE on the CAE runs, which contain no test
 data, and shared by every fold), the held-out test's condition is predicted
-(:func:`crashfuse.rollout.predict`) and the Monte Carlo mean is rated against the held-out (CFC 60)
+(:func:`crashfuse.method.rollout.predict`) and the Monte Carlo mean is rated against the held-out (CFC 60)
 test over 0-20, 0-40 and 0-60 ms. The ``CAE`` rows rate the test's companion CAE run (the surrogate's
 zero-bias pulse where a test has none). Folds run in parallel processes (joblib/loky).
 
 Band coverage: the fraction of held-out test samples in 0-60 ms inside the reported 95 % band
-(``band='test'`` by default: where a new test is expected, :func:`crashfuse.rollout.predict`), and
+(``band='test'`` by default: where a new test is expected, :func:`crashfuse.method.rollout.predict`), and
 inside the latent band (the bias function's uncertainty alone) beside it.
 """
 
@@ -30,14 +30,14 @@ from joblib import Parallel, delayed, effective_n_jobs
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
-from crashfuse.iso18571 import iso_score
-from crashfuse.model import fit_model
-from crashfuse.plots import fold_figure, save_png
-from crashfuse.projection import BRANCHES, INPUTS
-from crashfuse.report import (BASELINE, COLUMNS, SCORES, WINDOWS, FoldRecord, model_label, window_bounds,
+from crashfuse.signals.iso18571 import iso_score
+from crashfuse.method.model import fit_model
+from crashfuse.reporting.plots import fold_figure, save_png
+from crashfuse.method.projection import BRANCHES, INPUTS
+from crashfuse.reporting.tables import (BASELINE, COLUMNS, SCORES, WINDOWS, FoldRecord, model_label, window_bounds,
                               write_fold_json)
-from crashfuse.rollout import predict
-from crashfuse.surrogate import CAESurrogate
+from crashfuse.method.rollout import predict
+from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MS
 
 COVERAGE_WINDOW_MS = (0, 60)
@@ -52,7 +52,7 @@ class Evaluation:
     Attributes
     ----------
     iso_table : DataFrame
-        Columns :data:`crashfuse.report.COLUMNS`; one row per test, input mode, model (CAE, K1, ...) and window.
+        Columns :data:`crashfuse.reporting.tables.COLUMNS`; one row per test, input mode, model (CAE, K1, ...) and window.
     coverage : DataFrame
         Columns ``COVERAGE_COLUMNS``: per fold, the fraction of held-out test points in 0-60 ms inside
         the reported 95 % band (``coverage``) and inside the latent band (``coverage_latent``), the
@@ -62,7 +62,7 @@ class Evaluation:
         Per fold ``(inputs, model, test_id)``: the prediction table (:meth:`Prediction.frame`) with
         the held-out test's deceleration (``test_decel_g``) beside it.
     records : dict of (str, str, str) to FoldRecord
-        Per fold, its tracking record (``crashfuse.report``, docs/tracking.md).
+        Per fold, its tracking record (``crashfuse.reporting.tables``, docs/tracking.md).
     wall_time : float
         Seconds for the whole evaluation.
     """
@@ -103,12 +103,12 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     progress : callable, optional
         Receives one line per finished fold.
     band : {"test", "latent"}
-        The reported band (:func:`crashfuse.rollout.predict`) that ``coverage`` measures; the latent
+        The reported band (:func:`crashfuse.method.rollout.predict`) that ``coverage`` measures; the latent
         band's coverage is recorded either way.
     **fit_kwargs
-        Passed to :func:`crashfuse.model.fit_model` (``assignment``, ``extra_inputs``, ``n_grid``,
+        Passed to :func:`crashfuse.method.model.fit_model` (``assignment``, ``extra_inputs``, ``n_grid``,
         ``use_companion``, ``target``, ``weights``, ``velocity``, ``pooled``, ``onset`` - the state folds'
-        only: the paper inputs carry no time - and :class:`crashfuse.bias.GMMGPBias` settings such as
+        only: the paper inputs carry no time - and :class:`crashfuse.method.mixture.GMMGPBias` settings such as
         ``theta_max_candidates`` or ``calibrate_variance``).
 
     Returns

@@ -6,7 +6,7 @@ CAE curve of that condition (surrogate, or the companion run) plus the bias, per
     loading    a = CAE_loading(s)   + bias_loading(x = s, ...)
     unloading  a = CAE_unloading(u) + bias_unloading(x = u = s_max - s, ...)
 
-stepped by :func:`crashfuse.dynamics.rollout` (velocity Verlet, barrier constraints). With a
+stepped by :func:`crashfuse.signals.dynamics.rollout` (velocity Verlet, barrier constraints). With a
 relative target (``model.relative``) the bias is ``bias_scale(CAE) * b`` instead of ``b``.
 
 Monte Carlo. The condition is fixed for a prediction, so in ``paper`` mode each branch's bias is
@@ -30,7 +30,7 @@ Two deceleration bands. The *latent* band (``decel_latent_lo/hi``) is the ensemb
 percentiles: the bias function's uncertainty only. A new physical test also scatters about the
 bias function (near-replicate tests differ by 0.3-1 g), so the reported band for ``band='test'``
 (default) widens the latent one by the bias model's test-to-test scatter
-(:meth:`crashfuse.bias.GMMGPBias.scatter_std`, calibrated on grouped leave-one-test-out residuals),
+(:meth:`crashfuse.method.mixture.GMMGPBias.scatter_std`, calibrated on grouped leave-one-test-out residuals),
 in quadrature on each side of the Monte Carlo mean. ``band='latent'`` reports the latent band.
 The draws, the mean and every other band are the same either way.
 """
@@ -43,10 +43,10 @@ import numpy as np
 import pandas as pd
 from scipy.stats import norm
 
-from crashfuse.dynamics import Trajectory, rollout
+from crashfuse.signals.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
-from crashfuse.metrics import REBOUND_WINDOW, occupant_load_criterion
-from crashfuse.projection import BRANCHES, bias_scale
+from crashfuse.signals.metrics import REBOUND_WINDOW, occupant_load_criterion
+from crashfuse.method.projection import BRANCHES, bias_scale
 from crashfuse.units import G0, KMH, MM, MS
 
 BAND = (2.5, 97.5)  # percent: the 95 % band
@@ -200,9 +200,9 @@ class _Tabulated:
 
 
 def _decel_fn(curve, biases, relative=False):
-    """decel_fn for :func:`crashfuse.dynamics.rollout`: CAE curve plus the branch biases.
+    """decel_fn for :func:`crashfuse.signals.dynamics.rollout`: CAE curve plus the branch biases.
 
-    With ``relative`` the biases are fractions of :func:`crashfuse.projection.bias_scale` of the
+    With ``relative`` the biases are fractions of :func:`crashfuse.method.projection.bias_scale` of the
     CAE deceleration at the same point.
     """
     def decel(state):
@@ -230,7 +230,7 @@ def predict(model, v0, front_weight, rear_weight, powertrain=None, drive=None, n
 
     Parameters
     ----------
-    model : crashfuse.model.FittedModel
+    model : crashfuse.method.model.FittedModel
     v0 : float
         Impact speed in m/s.
     front_weight, rear_weight : float
@@ -353,8 +353,8 @@ def _path_velocity(branch, path: Trajectory, x) -> np.ndarray:
 def decel_scatter(model, curve, path: Trajectory, cond) -> np.ndarray:
     """Test-to-test scatter std of the deceleration (m/s^2) along a one-sample rollout, shape (n,).
 
-    The bias model's :meth:`~crashfuse.bias.GMMGPBias.scatter_std` at the path's inputs, in
-    deceleration units (times :func:`crashfuse.projection.bias_scale` of the CAE deceleration
+    The bias model's :meth:`~crashfuse.method.mixture.GMMGPBias.scatter_std` at the path's inputs, in
+    deceleration units (times :func:`crashfuse.method.projection.bias_scale` of the CAE deceleration
     there for a relative target); 0 after separation and on a branch without a model.
     """
     out = np.zeros(path.time.size)
@@ -402,7 +402,7 @@ def _summarise(mc: Trajectory, mean_traj: Trajectory, cae: Trajectory, cond, fla
 def trajectory_metrics(traj: Trajectory, v0: float) -> dict[str, np.ndarray]:
     """Pulse metrics of every sample of a rollout, in report units.
 
-    The definitions are those of :func:`crashfuse.metrics.pulse_metrics` applied to the rolled-out
+    The definitions are those of :func:`crashfuse.signals.metrics.pulse_metrics` applied to the rolled-out
     deceleration (already CFC 60-like: the CAE curve and a smooth bias), its Verlet velocity and
     displacement.
 

@@ -14,7 +14,7 @@ starts or ends mid-pulse does not ring as it would with zero padding or a cold s
 extension is one period of F_H (``fs / CFC`` samples), by which time the 2-pole impulse response
 has decayed to about 1e-4 of its peak. The padding is cropped again, so the output has the
 input's length. Raw crash records carry pre-impact samples: filter the full record and crop at
-t = 0 afterwards (:meth:`crashfuse.pulse.Pulse.after_contact`).
+t = 0 afterwards (:meth:`crashfuse.signals.pulse.Pulse.after_contact`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy as np
 from scipy import signal
 
 from crashfuse.errors import InputError
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 
 CFC_CLASSES = (60, 180, 600, 1000)
 # SAE J211-1 Appendix C: design frequency of each 2-pole pass, in multiples of the class number.

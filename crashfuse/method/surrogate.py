@@ -1,7 +1,7 @@
 """CAE surrogate G_a: the CAE deceleration vs displacement at a new impact condition.
 
 A CAE run is represented by its two branches in the displacement domain
-(:func:`crashfuse.domain.displacement_branches`):
+(:func:`crashfuse.signals.domain.displacement_branches`):
 
 * loading, ``a(s)`` on a fixed ABSOLUTE displacement grid ``0 .. s_top`` (the furthest any
   training run reached). Absolute, not ``xi = s / s_max``: a frontal structure's deceleration is a
@@ -18,7 +18,7 @@ A CAE run is represented by its two branches in the displacement domain
 
 Curves are reduced by PCA and the component scores (plus ``log u_end``) are regressed on the
 standardised conditions (v0, front and rear axle mass, and one-hot powertrain / drive where they
-vary) with :class:`crashfuse.bias.KrigingGP` (linear GLS trend, anisotropic Gaussian correlation,
+vary) with :class:`crashfuse.gp.kriging.KrigingGP` (linear GLS trend, anisotropic Gaussian correlation,
 MLE). A predicted curve's maximum crush follows from the energy balance
 ``int_0^s_max a(s) ds = v0^2 / 2`` on the predicted curve itself, so it is consistent with any
 rollout along it. Everything is SI: s, u in m, speeds in m/s, masses in kg, decel in m/s^2.
@@ -37,12 +37,13 @@ from sklearn.base import BaseEstimator
 from sklearn.utils import check_random_state
 from sklearn.utils.validation import check_is_fitted
 
-from crashfuse.bias import _SEED_MAX, KrigingGP, one_blas_thread
-from crashfuse.domain import Branches, displacement_branches
-from crashfuse.dynamics import Trajectory, rollout
+from crashfuse.gp.kriging import SEED_MAX, KrigingGP
+from crashfuse.gp.threads import one_blas_thread
+from crashfuse.signals.domain import Branches, displacement_branches
+from crashfuse.signals.dynamics import Trajectory, rollout
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
-from crashfuse.pulse import Pulse
+from crashfuse.signals.pulse import Pulse
 
 SEPARATION = 0.02  # unloading ends where the decel first falls to 2 % of its value at maximum crush
 CATEGORIES = ("powertrain", "drive")
@@ -173,7 +174,7 @@ class CAECurve:
         return np.where(loading, a, self.unloading(np.where(loading, 0.0, x)))
 
     def rollout(self, dt: float, n_steps: int) -> Trajectory:
-        """The zero-bias pulse of this curve (:func:`crashfuse.dynamics.rollout` from ``v0``)."""
+        """The zero-bias pulse of this curve (:func:`crashfuse.signals.dynamics.rollout` from ``v0``)."""
         return rollout(lambda st: self.decel(st.x, st.loading), self.v0, dt, n_steps)
 
     @functools.cached_property
@@ -363,7 +364,7 @@ class CAESurrogate(BaseEstimator):
 
     def _gp(self, rng) -> KrigingGP:
         return KrigingGP(trend="linear", n_restarts=self.n_restarts, max_fit_points=self.max_fit_points,
-                         random_state=rng.randint(_SEED_MAX))
+                         random_state=rng.randint(SEED_MAX))
 
     # --------------------------------------------------------------------------- loading
     def _fit_loading(self, X, branches: list[Branches], rng) -> None:

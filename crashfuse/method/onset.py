@@ -1,0 +1,136 @@
+"""The onset correction: a GP over the time since contact on a bias model's held-out residuals.
+
+See ``docs/bias-model.md``, "Onset correction".
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sklearn.base import BaseEstimator, RegressorMixin, clone
+from sklearn.utils.validation import check_array, check_is_fitted, check_X_y
+
+from crashfuse.gp.kriging import KrigingGP, stratified_subset
+
+__all__ = ["OnsetCorrectedBias", "ONSET_WINDOW"]
+
+# s: the correction is whole up to 15 ms after contact and fades out by 22 ms, where the onset
+# transients locked in time have died out (docs/bias-model.md, "Onset correction").
+ONSET_WINDOW = (0.015, 0.022)
+ONSET_MAX_ROWS = 2500  # rows (stratified per test) of the base model's O(n^3) held-out residuals
+
+
+class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
+    """A bias model plus a correction of its held-out error early in the pulse, over time since contact.
+
+    Features locked in time after contact (the onset transients of structure and instrumentation)
+    move with the impact speed in displacement, so a GP over the branch coordinate interpolates
+    them between tests out of phase. The base model's leave-one-test-out residuals expose that
+    error; a zero-mean GP over the nominal time since contact learns it from the rows earlier
+    than ``window[1]`` and its mean is added to the base model's, whole up to ``window[0]`` and
+    faded out by ``window[1]`` (cos^2). The correction is a point estimate: bands, draws'
+    spread and scatter stay the base model's (its band is calibrated on the same held-out
+    residuals).
+
+    Parameters
+    ----------
+    base : estimator
+        The bias model (:class:`GMMGPBias`), cloned and fitted on all rows.
+    time : callable
+        Maps inputs ``X`` (m, d) to the nominal time since contact in s, shape (m,)
+        (:func:`crashfuse.method.projection.nominal_time`); picklable.
+    window : (float, float)
+        Times (s) where the correction starts to fade and where it is gone.
+    max_rows : int
+        At most this many rows (evenly spaced within each test) enter the residuals.
+    blas_threads : int or None
+        BLAS threads of the correction GP.
+    random_state : int, RandomState or None
+        Seeds the correction GP.
+
+    Attributes
+    ----------
+    base_ : estimator
+        The fitted base model.
+    onset_gp_ : KrigingGP or None
+        The correction GP over time (s); None when fewer than three tests reach the window or
+        the residuals could not be computed (no correction).
+    """
+
+    def __init__(self, base=None, time=None, window=ONSET_WINDOW, max_rows=ONSET_MAX_ROWS, blas_threads=1,
+                 random_state=None):
+        self.base = base
+        self.time = time
+        self.window = window
+        self.max_rows = max_rows
+        self.blas_threads = blas_threads
+        self.random_state = random_state
+
+    def fit(self, X, y, groups):
+        """Fit the base model on every row, then the correction GP on its held-out residuals.
+
+        Parameters
+        ----------
+        X : array_like, shape (n, d)
+        y : array_like, shape (n,)
+        groups : array_like, shape (n,)
+            Test of each row.
+
+        Returns
+        -------
+        self
+        """
+        X, y = check_X_y(X, y, y_numeric=True)
+        groups = np.asarray(groups)
+        self.base_ = clone(self.base).fit(X, y, groups)
+        self.onset_gp_ = None
+        rows = stratified_subset(groups, self.max_rows)
+        t = np.asarray(self.time(X[rows]), dtype=float)
+        early = t < self.window[1]
+        if len(np.unique(groups[rows][early])) < 3:
+            return self
+        res = self.base_.grouped_residuals(X[rows], y[rows], groups[rows])
+        if res is not None:
+            # Every early row enters the likelihood: a 1-D GP on a few hundred rows is cheap, and on a
+            # 300-row subset some seeds' restarts stopped in a flat optimum (no correction).
+            gp = KrigingGP(trend="zero", max_fit_points=None, estimate_scatter=False,
+                           blas_threads=self.blas_threads, random_state=self.random_state)
+            self.onset_gp_ = gp.fit(t[early, None], res[early], groups[rows][early])
+        return self
+
+    @property
+    def gps_(self):
+        """The base model's GPs."""
+        return self.base_.gps_
+
+    def correction(self, X):
+        """The onset correction at ``X`` (y units), shape (m,): 0 from ``window[1]`` on."""
+        check_is_fitted(self)
+        X = check_array(X)
+        if self.onset_gp_ is None:
+            return np.zeros(len(X))
+        t = np.asarray(self.time(X), dtype=float)
+        fade = np.cos(0.5 * np.pi * np.clip((t - self.window[0]) / (self.window[1] - self.window[0]), 0.0, 1.0)) ** 2
+        out = np.zeros(len(X))
+        on = fade > 0
+        if on.any():
+            out[on] = fade[on] * self.onset_gp_.predict(t[on, None])
+        return out
+
+    def predict(self, X, return_std=False):
+        """Base prediction plus the correction; ``std`` (if asked) is the base model's."""
+        if not return_std:
+            return self.base_.predict(X) + self.correction(X)
+        mean, std = self.base_.predict(X, return_std=True)
+        return mean + self.correction(X), std
+
+    def sample_functions(self, X, n_samples=1, random_state=None):
+        """The base model's joint draws, each plus the correction, shape (n_samples, m)."""
+        return self.base_.sample_functions(X, n_samples, random_state) + self.correction(X)
+
+    def scatter_std(self, X):
+        """The base model's test-to-test scatter std, shape (m,)."""
+        return self.base_.scatter_std(X)
+
+    def predict_responsibilities(self, X):
+        """The base model's mixture responsibilities, shape (m, len(gps_))."""
+        return self.base_.predict_responsibilities(X)
