@@ -10,7 +10,7 @@ import json
 import os
 import sys
 
-from crashfuse.diagnosis.laws import EFFECTS
+from crashfuse.catalogue import EFFECTS
 from crashfuse.errors import InputError
 
 

@@ -8,11 +8,12 @@ import json
 import numpy as np
 import pytest
 
+from crashfuse.catalogue import EFFECTS
 from crashfuse.diagnosis import effect_fit as ef
 from crashfuse.cli import main
 from crashfuse.diagnosis.diagnose import diagnose, write_diagnosis
 from crashfuse.signals.dynamics import State
-from crashfuse.diagnosis.laws import EFFECTS, decel_fn, headline, parameters
+from crashfuse.diagnosis.laws import decel_fn, headline, parameters
 from crashfuse.errors import InputError
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
@@ -210,7 +211,7 @@ def test_paper_campaign_verdict():
 
 def test_a_law_at_its_upper_bound_is_flagged(case):
     from crashfuse.diagnosis.diagnose import Candidate
-    params = ef.effect_params(case, ("mass",))
+    params = ef.parameters_to_fit(case, ("mass",))
     upper = params[0].upper
     at_bound = ef.FoldFits(("mass",), params, np.array([[0.5 * upper], [upper]]), np.zeros(2))
     assert Candidate("mass", 1, at_bound, np.ones(2), np.ones(2)).at_upper_bound == ["mass.extra"]
@@ -221,7 +222,7 @@ def test_a_law_at_its_upper_bound_is_flagged(case):
 def test_the_weak_end_of_the_search_box_is_not_a_physical_limit(case):
     """A large rate reference d means little hardening: a subtle rate effect may fit there (q inside)."""
     from crashfuse.diagnosis.diagnose import Candidate
-    params = ef.effect_params(case, ("strain_rate",))
+    params = ef.parameters_to_fit(case, ("strain_rate",))
     d, q = params
     weak = ef.FoldFits(("strain_rate",), params, np.array([[d.upper, 6.0]] * 2), np.zeros(2))
     assert Candidate("strain_rate", 1, weak, np.ones(2), np.ones(2)).at_upper_bound == []
@@ -231,7 +232,7 @@ def test_the_weak_end_of_the_search_box_is_not_a_physical_limit(case):
 
 def test_a_parameter_that_never_left_its_start_is_not_identified(case):
     from crashfuse.diagnosis.diagnose import Candidate, _candidate_json
-    params = ef.effect_params(case, ("damping",))
+    params = ef.parameters_to_fit(case, ("damping",))
     for all_tests, identified in ((params[0].start[0], False), (2500.0, True)):
         fits = ef.FoldFits(("damping",), params, np.array([[2500.0], [all_tests]]), np.zeros(2))
         js = _candidate_json(Candidate("damping", 1, fits, np.ones(1), np.ones(1)), case)

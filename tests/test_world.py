@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from crashfuse.catalogue import EFFECTS
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import read_campaign
@@ -20,7 +21,7 @@ from crashfuse.signals.iso18571 import iso_score
 from crashfuse.signals.metrics import pulse_metrics
 from crashfuse.units import G0, MPH
 from crashfuse.world import WORLD_VERSION
-from crashfuse.world.effects import EFFECTS, REALISTIC, parse_overrides
+from crashfuse.world.effects import REALISTIC, parse_overrides
 from crashfuse.world.generate import all_params, build, generate
 from crashfuse.world.presets import TABLE1, resolve
 from crashfuse.world.realism import bars, realism_table

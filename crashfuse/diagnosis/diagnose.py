@@ -1,7 +1,7 @@
-"""Sim-to-real gap diagnosis (issue 6): where the gap lies, which effect causes it, how far it shrinks.
+"""Sim-to-real gap diagnosis: where the gap lies, which effect causes it, how far it shrinks.
 
 1. Where: :func:`crashfuse.diagnosis.gap.locate_gap` (the bias field and its significant regions).
-2. Which: every catalogue effect of :mod:`crashfuse.diagnosis.laws` is a force law added to the CAE
+2. Which: every effect of :mod:`crashfuse.catalogue` is a force law (:mod:`crashfuse.diagnosis.laws`) added to the CAE
    dynamics with a few physical parameters, fitted to the tests (:mod:`crashfuse.diagnosis.effect_fit`).
    Effects are compared on held-out evidence: the leave-one-test-out mean squared error of the
    CAE + effects rollout against the held-out test over its record. Greedy forward selection: each
@@ -28,9 +28,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from crashfuse.catalogue import EFFECTS, V_REF, check_effect
 from crashfuse.gp.threads import one_blas_thread
-from crashfuse.diagnosis.effect_fit import DT, FoldFits, TestCase, effect_params, fit_folds, loto_sets, predict, test_case
-from crashfuse.diagnosis.laws import EFFECTS, V_REF, check_effect, headline
+from crashfuse.diagnosis.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
+                                            test_case)
+from crashfuse.diagnosis.laws import headline
 from crashfuse.errors import InputError
 from crashfuse.diagnosis.gap import locate_gap
 from crashfuse.io.atomic import atomic_path, write_text
@@ -217,7 +219,7 @@ def _rms_g(mse: np.ndarray) -> float:
 
 def _start(case, current: FoldFits, effect: str):
     """The chosen effects' fitted values plus the new effect's first starting point, per training set."""
-    new = [p.start[0] for p in effect_params(case, (effect,))]
+    new = [p.start[0] for p in parameters_to_fit(case, (effect,))]
     if current.theta.shape[1] == 0:
         return None
     return np.hstack([current.theta, np.tile(new, (current.theta.shape[0], 1))])

@@ -1,4 +1,4 @@
-"""Fitting effect parameters to tests: CAE + effect rollouts against measured pulses (issue 6 point 2).
+"""Fitting effect parameters to tests: CAE + effect rollouts against measured pulses.
 
 A :class:`TestCase` holds every test of a campaign with its CAE curve (the companion run where the
 test names one, else the CAE surrogate at its condition) and its measured deceleration on the
@@ -150,8 +150,9 @@ class FoldFits:
     cost: np.ndarray
 
 
-def effect_params(case: TestCase, effects) -> tuple[Param, ...]:
-    """All fitted parameters of ``effects`` for this case (powertrain: per label)."""
+def parameters_to_fit(case: TestCase, effects) -> tuple[Param, ...]:
+    """The diagnosis laws' parameters of ``effects`` for this case, with their bounds and starting
+    points (powertrain: per label of the case's tests)."""
     hint = float(case.plant.mass.min())
     return tuple(p for e in effects for p in parameters(e, case.plant.labels, hint))
 
@@ -174,7 +175,7 @@ def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = No
     -------
     FoldFits
     """
-    params = effect_params(case, effects)
+    params = parameters_to_fit(case, effects)
     if not params:
         return FoldFits(tuple(effects), (), np.empty((len(train_sets), 0)), _costs(case, train_sets))
     starts = _starts(params, len(train_sets), start)

@@ -1,9 +1,9 @@
 """Physical effects a CAE model may miss, as force laws added to the CAE dynamics in a rollout.
 
-This is the diagnosis's own implementation of the catalogue (issue 6): textbook laws written in
-terms of the rollout's state, independent of how any simulator produced the campaign. Names
-follow the catalogue (``damping``, ``strain_rate``, ``powertrain``, ``unloading``, ``mass``) and
-parameters are ``effect.param`` in SI.
+These are the diagnosis's own laws of the catalogue effects (:mod:`crashfuse.catalogue`): textbook
+laws written in terms of the rollout's state, independent of how any simulator produced the
+campaign. Parameters are ``effect.param`` in SI; :data:`QUANTITIES` says which catalogue quantity
+each one is.
 
 The force balance of one sample (vehicle of nominal mass ``M``, the test's axle masses) at a step
 with displacement ``s``, velocity ``v`` (m/s, positive forward), maximum crush ``s_max`` and
@@ -44,7 +44,7 @@ The laws (each one modifies the balance; their order does not matter):
 ``mass``         The decelerating mass exceeds the nominal test weight: ``M_eff += extra`` (kg).
 
 Every effect lists its parameters with physical bounds and starting points (:class:`Param`);
-:func:`headline` names the one quantity the validation compares with a known answer.
+:func:`headline` computes the catalogue's headline quantities from them.
 """
 
 from __future__ import annotations
@@ -53,14 +53,25 @@ import dataclasses
 
 import numpy as np
 
+from crashfuse.catalogue import F_REF, V_REF, check_effect, key, quantity
 from crashfuse.signals.domain import displacement_branches
 from crashfuse.signals.dynamics import State, Trajectory, rollout
-from crashfuse.errors import InputError
 
-EFFECTS = ("damping", "strain_rate", "powertrain", "unloading", "mass")
+# Each parameter of the laws as the catalogue quantity it is (``powertrain.mass`` and
+# ``powertrain.gap`` stand for their per-label parameters ``powertrain.mass[label]``...).
+QUANTITIES = {
+    "damping.c": "c",
+    "strain_rate.d": "doubling_speed",
+    "strain_rate.q": "inverse_rate_exponent",
+    "powertrain.mass": "mass",
+    "powertrain.gap": "gap",
+    "powertrain.f_mount": "mount_yield_force",
+    "unloading.k": "springback_stiffness",
+    "unloading.d0": "springback_floor",
+    "unloading.n": "unloading_exponent",
+    "mass.extra": "extra",
+}
 MOUNT_YIELD_TRAVEL = 0.01  # m: powertrain mounts yield after 1 cm of relative travel (k_m = f_mount / 1 cm)
-V_REF = 15.0  # m/s: reference crush speed of the strain-rate headline (about 34 mph)
-F_REF = 5e5  # N: reference peak force of the unloading headline (about 30 g on a 1700 kg car)
 RUNS_PER_COEF = 3  # moving CAE runs per regression coefficient before a crush's force-speed fit is used
 
 
@@ -73,6 +84,7 @@ class Param:
     name : str
         ``effect.param`` (``effect.param[label]`` for a parameter per powertrain label).
     unit : str
+        The unit of its catalogue quantity (:func:`_param`).
     lower, upper : float
         Physical bounds (> 0; fitted in log space).
     start : tuple of float
@@ -279,27 +291,26 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
     """
     check_effect(effect)
     if effect == "damping":
-        return (Param("damping.c", "N s/m", 10.0, 1e5, (1e3, 1e4)),)
+        return (_param("damping.c", 10.0, 1e5, (1e3, 1e4)),)
     if effect == "strain_rate":
-        return (Param("strain_rate.d", "m/s", 1e-2, 1e8, (1e2, 1e4), upper_is_limit=False),
-                Param("strain_rate.q", "-", 1.0, 12.0, (3.0, 6.0)))
+        return (_param("strain_rate.d", 1e-2, 1e8, (1e2, 1e4), upper_is_limit=False),
+                _param("strain_rate.q", 1.0, 12.0, (3.0, 6.0)))
     if effect == "unloading":
-        return (Param("unloading.k", "N/m", 1e5, 1e10, (1e7, 1e8)),
-                Param("unloading.d0", "m", 1e-4, 0.1, (0.005, 0.02)),
-                Param("unloading.n", "-", 0.3, 6.0, (1.5, 1.0)))
+        return (_param("unloading.k", 1e5, 1e10, (1e7, 1e8)),
+                _param("unloading.d0", 1e-4, 0.1, (0.005, 0.02)),
+                _param("unloading.n", 0.3, 6.0, (1.5, 1.0)))
     if effect == "mass":
-        return (Param("mass.extra", "kg", 1.0, 0.5 * mass_hint, (50.0, 200.0)),)
+        return (_param("mass.extra", 1.0, 0.5 * mass_hint, (50.0, 200.0)),)
     per_label = [p for lab in labels for p in (
-        Param(f"powertrain.mass[{lab}]", "kg", 5.0, 0.45 * mass_hint, (150.0, 250.0)),
-        Param(f"powertrain.gap[{lab}]", "m", 0.05, 1.2, (0.35, 0.5)))]
-    return (*per_label, Param("powertrain.f_mount", "N", 1e3, 5e5, (5e4, 1e5)))
+        _param(f"powertrain.mass[{lab}]", 5.0, 0.45 * mass_hint, (150.0, 250.0)),
+        _param(f"powertrain.gap[{lab}]", 0.05, 1.2, (0.35, 0.5)))]
+    return (*per_label, _param("powertrain.f_mount", 1e3, 5e5, (5e4, 1e5)))
 
 
-def check_effect(name: str, field: str = "effect") -> str:
-    """``name`` if it is a catalogue effect, else InputError."""
-    if name not in EFFECTS:
-        raise InputError(f"unknown effect {name!r}; expected one of {', '.join(EFFECTS)}", field=field)
-    return name
+def _param(name: str, lower: float, upper: float, start: tuple, upper_is_limit: bool = True) -> Param:
+    """A :class:`Param` in the unit of the catalogue quantity :data:`QUANTITIES` declares for ``name``."""
+    unit = quantity(name.split("[", 1)[0], QUANTITIES).unit
+    return Param(name, unit, lower, upper, start, upper_is_limit)
 
 
 def decel_fn(plant: Plant, effects, theta: dict):
@@ -377,21 +388,25 @@ def curve_plant(curves, masses, labels_of, s_hi: float, faster=None, force_rate=
 
 
 def headline(effect: str, params: dict) -> dict:
-    """The quantity the validation compares per effect, and its plain-language reading inputs.
+    """The catalogue's headline quantities of ``effect`` from its fitted parameters.
 
     Where two parameters trade off against each other, the headline is the combination the data
-    fix: ``strain_rate``: the force increase at the crush speed :data:`V_REF`,
+    fix: ``strain_rate``: the force increase at the crush speed :data:`~crashfuse.catalogue.V_REF`,
     ``(V_REF / d)^(1/q)``; ``unloading``: the elastic spring-back from a peak force
-    :data:`F_REF`, ``d0 + F_REF / k``. Others: the effect's defining parameter (``powertrain``:
-    the mass of each label).
+    :data:`~crashfuse.catalogue.F_REF`, ``d0 + F_REF / k``. Others: the effect's defining
+    parameter (``powertrain``: the arrested mass of each label).
+
+    Returns
+    -------
+    dict
+        ``{reported name: value}`` (:func:`crashfuse.catalogue.key`).
     """
     check_effect(effect)
     if effect == "strain_rate":
-        return {"strain_rate.gain_at_15mps": (V_REF / params["strain_rate.d"]) ** (1.0 / params["strain_rate.q"])}
+        return {key(effect, "gain_at_15mps"): (V_REF / params["strain_rate.d"]) ** (1.0 / params["strain_rate.q"])}
     if effect == "unloading":
-        return {"unloading.springback_at_500kN": params["unloading.d0"] + F_REF / params["unloading.k"]}
+        return {key(effect, "springback_at_500kN"): params["unloading.d0"] + F_REF / params["unloading.k"]}
     if effect == "powertrain":
         return {k: v for k, v in params.items() if k.startswith("powertrain.mass[")}
-    key = {"damping": "damping.c", "mass": "mass.extra"}[effect]
-    return {key: params[key]}
-
+    name = {"damping": "c", "mass": "extra"}[effect]
+    return {key(effect, name): params[f"{effect}.{name}"]}

@@ -21,12 +21,13 @@ import numpy as np
 import pandas as pd
 from scipy import optimize
 
+from crashfuse.catalogue import EFFECTS
 from crashfuse.errors import InputError
 from crashfuse.signals.filters import filter_pulse
 from crashfuse.io.nhtsa import read_nhtsa
 from crashfuse.signals.metrics import pulse_metrics
 from crashfuse.signals.pulse import Pulse
-from crashfuse.world.effects import EFFECTS, REALISTIC
+from crashfuse.world.effects import REALISTIC
 from crashfuse.world.simulate import MEASUREMENT, PRETRIGGER, RAW_RATE, Runs, body_decel
 from crashfuse.world.vehicle import VEHICLE
 

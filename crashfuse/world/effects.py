@@ -1,8 +1,9 @@
-"""The catalogue of physical effects a real crash test has and a CAE model may miss.
+"""The world's laws of the catalogue effects (:mod:`crashfuse.catalogue`): how the physical tests
+differ from a CAE model that lacks them.
 
-Names are fixed (other parts and reports use them). Every parameter is ``effect.name`` in SI and
-must be finite and >= 0 (> 0 for those in :data:`POSITIVE`). Forces act on the body (crush s in
-m, crush velocity sdot in m/s):
+Every parameter is ``effect.name`` in SI and must be finite and >= 0 (> 0 for those in
+:data:`POSITIVE`); :data:`QUANTITIES` says which catalogue quantity each one is. Forces act on the
+body (crush s in m, crush velocity sdot in m/s):
 
 ``damping``
     Viscous crush damping ``F_d = c * sdot * min(1, s / 0.02 m)`` during loading and unloading (the
@@ -36,9 +37,32 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
+from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect, key
 from crashfuse.errors import InputError
 
-EFFECTS = ("damping", "strain_rate", "powertrain", "unloading", "mass")
+# Each parameter of the laws above as the catalogue quantity it is.
+QUANTITIES = {
+    "damping.c": "c",
+    "strain_rate.d": "doubling_speed",
+    "strain_rate.q": "inverse_rate_exponent",
+    "powertrain.mass_type1": "mass",
+    "powertrain.mass_type2": "mass",
+    "powertrain.mass_awd": "mass",
+    "powertrain.gap_type1": "gap",
+    "powertrain.gap_type2": "gap",
+    "powertrain.gap_awd": "gap",
+    "powertrain.k_mount": "mount_stiffness",
+    "powertrain.c_mount": "mount_damping",
+    "powertrain.f_mount": "mount_yield_force",
+    "powertrain.k_contact": "contact_stiffness",
+    "powertrain.c_contact": "contact_damping",
+    "unloading.k": "springback_stiffness",
+    "unloading.d0": "springback_floor",
+    "unloading.n": "unloading_exponent",
+    "mass.extra": "extra",
+}
 
 # Realistic magnitudes (the `paper` preset and `--strength realistic`): chosen physical magnitudes,
 # except `unloading.k`, fitted with the vehicle's force levels to NHTSA 10146 by
@@ -85,8 +109,8 @@ POSITIVE = ("strain_rate.d", "strain_rate.q", "unloading.k", "unloading.n", "pow
             "powertrain.mass_type2", "powertrain.k_mount", "powertrain.f_mount")
 
 
-def effect_params(strength: str = "realistic", effects=EFFECTS) -> dict:
-    """Parameters of the catalogue at a named strength.
+def params_at_strength(strength: str = "realistic", effects=EFFECTS) -> dict:
+    """Every parameter of the world's laws at a named strength.
 
     Parameters
     ----------
@@ -97,22 +121,15 @@ def effect_params(strength: str = "realistic", effects=EFFECTS) -> dict:
     Returns
     -------
     dict
-        ``{"effect.param": value}`` in SI for every catalogue parameter.
+        ``{"effect.param": value}`` in SI for every parameter of :data:`QUANTITIES`.
     """
     if strength not in STRENGTHS:
         raise InputError(f"unknown strength {strength!r}; expected one of {STRENGTHS}", field="--strength")
     params = dict(REALISTIC)
     if strength == "subtle":
         for name in effects:
-            params.update(SUBTLE[check_effect(name)])
+            params.update(SUBTLE[check_effect(name, field="--withhold")])
     return params
-
-
-def check_effect(name: str, field: str = "--withhold") -> str:
-    """``name`` if it is a catalogue effect, else InputError."""
-    if name not in EFFECTS:
-        raise InputError(f"unknown effect {name!r}; expected one of {', '.join(EFFECTS)}", field=field)
-    return name
 
 
 def parse_overrides(items) -> dict:
@@ -142,3 +159,36 @@ def parse_overrides(items) -> dict:
             raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="--effect-param")
         out[name] = value
     return out
+
+
+def headline(effect: str, params: dict, tests) -> dict:
+    """The catalogue's headline quantities of ``effect`` under these laws and parameters, SI.
+
+    Parameters
+    ----------
+    effect : str
+    params : dict
+        The effect's parameters ``{"effect.param": value}`` (at least those of ``effect``).
+    tests : pandas.DataFrame
+        The tests the headline is for (columns ``powertrain``, ``drive``): the powertrain's
+        arrested mass is averaged over the tests of each powertrain label (AWD adds ``mass_awd``).
+
+    Returns
+    -------
+    dict
+        ``{reported name: value}`` (:func:`crashfuse.catalogue.key`).
+    """
+    p = params
+    if check_effect(effect) == "strain_rate":
+        return {key(effect, "gain_at_15mps"): (V_REF / p["strain_rate.d"]) ** (1.0 / p["strain_rate.q"])}
+    if effect == "unloading":
+        return {key(effect, "springback_at_500kN"): p["unloading.d0"] + F_REF / p["unloading.k"]}
+    if effect == "powertrain":
+        out = {}
+        for label, part in tests.groupby("powertrain"):
+            base = p["powertrain.mass_type2"] if "II" in str(label) else p["powertrain.mass_type1"]
+            awd = part["drive"] == "AWD"
+            out[key(effect, "mass", str(label))] = float(np.mean(base + p["powertrain.mass_awd"] * awd))
+        return out
+    name = {"damping": "c", "mass": "extra"}[effect]
+    return {key(effect, name): p[f"{effect}.{name}"]}

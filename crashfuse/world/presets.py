@@ -20,9 +20,10 @@ import numpy as np
 import pandas as pd
 from scipy.stats import qmc
 
+from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.errors import InputError
 from crashfuse.units import LB, MPH
-from crashfuse.world.effects import EFFECTS, check_effect, effect_params
+from crashfuse.world.effects import params_at_strength
 
 PRESETS = ("paper", "withheld")
 PAPER_WITHHELD = ("strain_rate", "powertrain")
@@ -66,7 +67,7 @@ class Design:
         Effects the tests carry and the CAE does not.
     strength : str
     params : dict
-        Every catalogue parameter ``effect.param`` in SI (the generator adds ``vehicle.*`` and
+        Every parameter ``effect.param`` of the world's effect laws in SI (the generator adds ``vehicle.*`` and
         ``measurement.*``).
     """
 
@@ -118,8 +119,8 @@ def resolve(preset: str | None = None, withhold: str | None = None, strength: st
     elif withhold is None:
         raise InputError(f"the withheld preset needs --withhold ({'|'.join(EFFECTS)}|none)", field="--withhold")
     else:
-        withheld = () if withhold == "none" else (check_effect(withhold),)
-    params = {**effect_params(strength, withheld), **(overrides or {})}
+        withheld = () if withhold == "none" else (check_effect(withhold, field="--withhold"),)
+    params = {**params_at_strength(strength, withheld), **(overrides or {})}
     return Design(preset, tuple(withheld), strength, params)
 
 
