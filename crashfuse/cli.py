@@ -338,11 +338,11 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
                    help="test to keep out of the bias data (repeatable)")
     _add_method_options(s)
-    s.add_argument("--out", required=True, help="model file to write")
+    s.add_argument("--out", required=True, help="model file to write (e.g. model.cfmodel)")
     s.set_defaults(func=_fit)
 
     s = sub.add_parser("predict", help="bias-corrected pulse with a 95 %% Monte Carlo band at one condition")
-    s.add_argument("model", help="model file from 'crashfuse fit'")
+    s.add_argument("model", help="model file (.cfmodel) from 'crashfuse fit'")
     s.add_argument("--v0-mph", type=float, required=True, help="impact speed, mph")
     s.add_argument("--front-weight-lb", type=float, required=True, help="front axle weight, lb")
     s.add_argument("--rear-weight-lb", type=float, required=True, help="rear axle weight, lb")
@@ -364,7 +364,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--jobs", type=_positive, default=2, help="worker processes (default 2)")
     s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
                    help="run only the fold holding out this test (repeatable; default every test)")
-    s.add_argument("--surrogate", default=None, help="CAE surrogate file from 'crashfuse prepare' (default: fit it)")
+    s.add_argument("--surrogate", default=None,
+                   help="CAE surrogate file (.cfmodel) from 'crashfuse prepare' (default: fit it)")
     _add_method_options(s)
     _add_band_option(s)
     s.add_argument("--out", required=True, help="output folder")
@@ -383,7 +384,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--samples", type=_positive, default=200, help="Monte Carlo samples per GMM-GPR fold (default 200)")
     s.add_argument("--inputs", choices=("paper", "state"), default="state",
                    help="bias inputs of the GMM-GPR rows (default state, the method's default)")
-    s.add_argument("--surrogate", default=None, help="CAE surrogate file from 'crashfuse prepare' (default: fit it)")
+    s.add_argument("--surrogate", default=None,
+                   help="CAE surrogate file (.cfmodel) from 'crashfuse prepare' (default: fit it)")
     s.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
     s.add_argument("--in-sample", action="store_true", help="allow a single test (no hold-out; evidence in-sample)")
     s.add_argument("--no-residual", action="store_true", help="skip the GMM-GPR rows of the shrink table (faster)")
@@ -393,7 +395,7 @@ def _build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("prepare", help="fit the CAE surrogate once on a campaign's CAE runs (shared by folds)")
     s.add_argument("campaign", help="campaign folder")
     s.add_argument("--seed", type=_seed, default=0, help="seed of the surrogate's fit (default 0)")
-    s.add_argument("--out", required=True, help="surrogate file to write")
+    s.add_argument("--out", required=True, help="surrogate file to write (e.g. surrogate.cfmodel)")
     s.set_defaults(func=_prepare)
 
     s = sub.add_parser("aggregate", help="combine per-fold ISO tables into one iso_table.csv (CAE rows once)")

@@ -173,7 +173,7 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     small = campaign.subset(["T05", "T08", campaign.companion("T05").run_id, campaign.companion("T08").run_id]
                             + campaign.cae[len(KEEP):])
     folder = write_campaign(small, tmp_path / "campaign")
-    surrogate = tmp_path / "surrogate.pkl"
+    surrogate = tmp_path / "surrogate.cfmodel"
     assert main(["prepare", str(folder), "--out", str(surrogate)]) == 0
     out = tmp_path / "eval"
     assert main(["evaluate", str(folder), "--k", "1", "--inputs", "paper", "--holdout", "T08", "--surrogate",
@@ -182,7 +182,7 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     assert set(iso["test_id"]) == {"T08"} and set(iso["model"]) == {"CAE", "K1"}
     assert sorted(p.name for p in (out / "paper" / "K1" / "T08").iterdir()) == ["T08.fold.json", "T08.png",
                                                                                "T08_prediction.csv"]
-    model = tmp_path / "model.pkl"
+    model = tmp_path / "model.cfmodel"
     assert main(["fit", str(folder), "--k", "2", "--inputs", "paper", "--pooled", "--n-grid", "40",
                  "--out", str(model)]) == 0
     assert load_model(model).settings["pooled"] is True  # paper's default is False

@@ -283,36 +283,9 @@ def test_a_companion_curve_at_prediction_is_the_one_the_bias_was_learnt_on(campa
     assert "stand-in" in origins  # the case this guards is present in the campaign
 
 
-def test_model_file_errors(tmp_path, model):
-    with pytest.raises(InputError, match="no such model file"):
-        load_model(tmp_path / "missing.pkl")
-    with pytest.raises(InputError, match="cannot read the model file"):
-        load_model(tmp_path)  # a folder
-    (tmp_path / "junk.pkl").write_bytes(b"not a pickle")
-    with pytest.raises(InputError, match="not a crashfuse model"):
-        load_model(tmp_path / "junk.pkl")
-    model.save(tmp_path / "m.pkl")
-    assert load_model(tmp_path / "m.pkl").campaign_hash == model.campaign_hash
-
-
-def test_file_formats_are_versioned_per_kind(tmp_path, model):
-    """A model file of an older format is refused (refit); the surrogate's format moves on its own."""
-    import pickle
-
-    from crashfuse.method.model import FORMAT, load_surrogate, save_surrogate
-    old = tmp_path / "old.pkl"
-    old.write_bytes(pickle.dumps({"format": FORMAT["model"] - 1, "model": model}))
-    with pytest.raises(InputError, match=f"model file format {FORMAT['model'] - 1}, this crashfuse reads "
-                                         f"{FORMAT['model']}: refit"):
-        load_model(old)
-    save_surrogate(model.surrogate, tmp_path / "s.pkl")
-    assert pickle.loads((tmp_path / "s.pkl").read_bytes())["format"] == FORMAT["surrogate"] == 1
-    assert isinstance(load_surrogate(tmp_path / "s.pkl"), type(model.surrogate))
-
-
 def test_cli_fit_predict_round_trip(tmp_path, capsys):
     folder = generate(tmp_path / "campaign", resolve("paper"), seed=1, n_cae=12)
-    model_file = tmp_path / "model.pkl"
+    model_file = tmp_path / "model.cfmodel"
     assert main(["fit", str(folder), "--k", "1", "--holdout", "T02", "--n-grid", "40", "--out", str(model_file)]) == 0
     out = tmp_path / "pred.csv"
     # T02's condition in report units (Table 1: 12.1 mph is 5.409 m/s).
@@ -333,7 +306,7 @@ def test_cli_fit_predict_round_trip(tmp_path, capsys):
                     random_state=3)
     np.testing.assert_allclose(frame["decel_g"], again.decel / G, rtol=1e-5, atol=1e-6)
     assert main(argv[:3] + ["-5"] + argv[4:]) == 2
-    assert main(["predict", str(tmp_path / "nope.pkl"), *argv[2:]]) == 2
+    assert main(["predict", str(tmp_path / "nope.cfmodel"), *argv[2:]]) == 2
     assert not (tmp_path / "nope.csv").exists()
 
 

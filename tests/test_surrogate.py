@@ -163,8 +163,8 @@ def test_the_surrogate_records_and_checks_its_campaign(world, fitted):
     fitted.check_campaign(world)
     other = world.subset([r for r in world.pulses if r != world.cae[-1]])
     with pytest.raises(InputError, match=f"fitted on campaign {world.content_hash()[:12]}") as err:
-        fitted.check_campaign(other, "s.pkl")
-    assert (err.value.file, err.value.field) == ("s.pkl", "campaign_hash")
+        fitted.check_campaign(other, "s.cfmodel")
+    assert (err.value.file, err.value.field) == ("s.cfmodel", "campaign_hash")
     from_pulses = clone(fitted).fit([world.pulses[r] for r in world.cae[:60]])
     assert from_pulses.campaign_hash_ is None
     with pytest.raises(InputError, match="records no campaign"):
@@ -177,8 +177,8 @@ def test_evaluate_refuses_a_surrogate_of_another_campaign(tmp_path, world, fitte
     from crashfuse.method.model import save_surrogate
 
     folder = write_campaign(world.subset([r for r in world.pulses if r != world.cae[-1]]), tmp_path / "campaign")
-    save_surrogate(fitted, tmp_path / "s.pkl")
-    argv = ["evaluate", str(folder), "--k", "1", "--surrogate", str(tmp_path / "s.pkl"), "--out", str(tmp_path / "out")]
+    save_surrogate(fitted, tmp_path / "s.cfmodel")
+    argv = ["evaluate", str(folder), "--k", "1", "--surrogate", str(tmp_path / "s.cfmodel"), "--out", str(tmp_path / "out")]
     assert main(argv) == 2
     assert "campaign_hash" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()

@@ -5,9 +5,11 @@ the CAE surrogate G_a, the companion CAE runs of the campaign's tests (for ``use
 the loading and unloading bias models, the training ranges (for extrapolation flags), the
 settings, the campaign's content hash and the crashfuse version.
 
-Model (and shared surrogate) files are pickles of a versioned payload (``FORMAT`` of its kind, with the
-crashfuse version): trusted input only, like any pickle. :func:`load_model` /
-:func:`load_surrogate` refuse another format version or another kind of object and name the file.
+Model (and shared surrogate) files hold data only (:mod:`crashfuse.io.persist`: a zip of a JSON
+header and numpy arrays, checked by SHA-256): opening one runs no code from it. The header records
+the kind, ``FORMAT`` of that kind and the crashfuse version; the classes the file may name are
+:data:`crashfuse.method.files.TYPES`. :func:`load_model` / :func:`load_surrogate` refuse another
+kind, another format version, an older pickle file or a tampered file, and name the file.
 """
 
 from __future__ import annotations
@@ -15,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-import pickle
 
 import numpy as np
 
@@ -25,13 +26,16 @@ from crashfuse.method.mixture import GMMGPBias, TooFewPointsError
 from crashfuse.method.onset import OnsetCorrectedBias
 from crashfuse.signals.dynamics import Trajectory
 from crashfuse.errors import InputError
-from crashfuse.io.atomic import atomic_path
+from crashfuse.io import persist
 from crashfuse.io.campaign import Campaign
 from crashfuse.method.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity, nominal_time
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
 
-# File format version per kind: a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 3, "surrogate": 1}  # model 2: GMMGPBias gained the pooled GP; 3: the onset correction
+# File format version per kind, bumped when that kind's objects change their attributes (older files
+# are refused: refit); a change to one kind's objects leaves the other's files valid.
+FORMAT = {"model": 4, "surrogate": 2}
+# What a user does about a file of another format.
+_REFIT = {"model": "refit with `crashfuse fit`", "surrogate": "refit with `crashfuse prepare`"}
 # What the bias GPs learn by default: the paper's absolute bias; in the state mode the bias relative
 # to the CAE deceleration (a rate effect scales the force), chosen by grouped leave-one-test-out
 # density on the training tests (docs/method-rollout.md).
@@ -240,7 +244,7 @@ class FittedModel:
         return flags
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the model file atomically (a versioned pickle)."""
+        """Write the model file atomically (:mod:`crashfuse.io.persist`, kind ``model``)."""
         _save("model", self, path)
 
 
@@ -250,13 +254,15 @@ def load_model(path: str | os.PathLike) -> FittedModel:
     Raises
     ------
     InputError
-        Missing or unreadable file, not a crashfuse model, or another format version.
+        Missing or unreadable file, not a crashfuse model file, another format version, an older
+        pickle file, or a damaged or tampered file (a class outside the whitelist, an array that
+        does not match its checksum).
     """
     return _load("model", FittedModel, path)
 
 
 def save_surrogate(surrogate: CAESurrogate, path: str | os.PathLike) -> None:
-    """Write a fitted CAE surrogate atomically (a versioned pickle, shared by evaluation folds)."""
+    """Write a fitted CAE surrogate atomically (kind ``surrogate``, shared by evaluation folds)."""
     _save("surrogate", surrogate, path)
 
 
@@ -266,27 +272,18 @@ def load_surrogate(path: str | os.PathLike) -> CAESurrogate:
 
 
 def _save(kind: str, obj, path) -> None:
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        pickle.dump({"format": FORMAT[kind], kind: obj, "version": crashfuse.__version__}, fh,
-                    protocol=pickle.HIGHEST_PROTOCOL)
+    from crashfuse.method.files import TYPES  # files.py lists this module's classes: imported when used
+
+    persist.save(path, kind, FORMAT[kind], obj, TYPES)
 
 
 def _load(kind: str, cls, path):
-    try:
-        with open(path, "rb") as fh:
-            payload = pickle.load(fh)
-    except FileNotFoundError:
-        raise InputError(f"no such {kind} file", path) from None
-    except OSError as err:
-        raise InputError(f"cannot read the {kind} file ({err.strerror})", path) from None
-    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError) as err:
-        raise InputError(f"not a crashfuse {kind} file ({type(err).__name__})", path) from None
-    if not isinstance(payload, dict) or not isinstance(payload.get(kind), cls):
-        raise InputError(f"not a crashfuse {kind} file", path)
-    if payload.get("format") != FORMAT[kind]:
-        raise InputError(f"{kind} file format {payload.get('format')!r}, this crashfuse reads {FORMAT[kind]}: refit",
-                         path, "format")
-    return payload[kind]
+    from crashfuse.method.files import TYPES
+
+    obj = persist.load(path, kind, FORMAT[kind], TYPES, _REFIT[kind])
+    if not isinstance(obj, cls):
+        raise InputError(f"not a crashfuse {kind} file (it holds a {type(obj).__name__})", path)
+    return obj
 
 
 def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, assignment: str = "select",

@@ -22,7 +22,7 @@ rule prepare:
     input:
         campaign=campaign_dir,
     output:
-        f"{RESULTS}/surrogate.pkl",
+        f"{RESULTS}/surrogate.cfmodel",
     params:
         seed=METHOD["seed"],
     log:

@@ -7,7 +7,7 @@ DIAG = config["diagnosis"]
 rule diagnose:
     input:
         campaign=campaign_dir,
-        surrogate=f"{RESULTS}/surrogate.pkl",
+        surrogate=f"{RESULTS}/surrogate.cfmodel",
     output:
         json=f"{RESULTS}/diagnosis/diagnosis.json",
         markdown=report(f"{RESULTS}/diagnosis/diagnosis.md", category="Diagnosis"),

@@ -12,7 +12,7 @@ wildcard_constraints:
 rule fold:
     input:
         campaign=campaign_dir,
-        surrogate=f"{RESULTS}/surrogate.pkl",
+        surrogate=f"{RESULTS}/surrogate.cfmodel",
     output:
         table=fold_dir("iso_table.csv"),
         coverage=fold_dir("coverage.csv"),
