@@ -84,7 +84,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         GP index of each training point.
     """
 
-    def __init__(self, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
+    def __init__(self, *, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
                  theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0), n_restarts=2,
                  max_fit_points=300, max_condition_points=None, normalize_y=True, n_init=5,
                  reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None,

@@ -9,7 +9,8 @@ import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin, clone
 from sklearn.utils.validation import check_array, check_is_fitted, check_X_y
 
-from crashfuse.gp.kriging import KrigingGP, stratified_subset
+from crashfuse.gp.kriging import KrigingGP
+from crashfuse.gp.subsets import stratified_subset
 
 __all__ = ["OnsetCorrectedBias", "ONSET_WINDOW"]
 
@@ -56,7 +57,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         the residuals could not be computed (no correction).
     """
 
-    def __init__(self, base=None, time=None, window=ONSET_WINDOW, max_rows=ONSET_MAX_ROWS, blas_threads=1,
+    def __init__(self, *, base=None, time=None, window=ONSET_WINDOW, max_rows=ONSET_MAX_ROWS, blas_threads=1,
                  random_state=None):
         self.base = base
         self.time = time
