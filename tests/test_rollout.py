@@ -306,7 +306,7 @@ def test_file_formats_are_versioned_per_kind(tmp_path, model):
                                          f"{FORMAT['model']}: refit"):
         load_model(old)
     save_surrogate(model.surrogate, tmp_path / "s.pkl")
-    assert pickle.loads((tmp_path / "s.pkl").read_bytes())["format"] == FORMAT["surrogate"] == 1
+    assert pickle.loads((tmp_path / "s.pkl").read_bytes())["format"] == FORMAT["surrogate"] == 2
     assert isinstance(load_surrogate(tmp_path / "s.pkl"), type(model.surrogate))
 
 

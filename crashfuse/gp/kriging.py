@@ -234,7 +234,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         n_par = (self.trend != "zero") + len(self.trend_columns_)
         if len(y) < n_par + 2:
             raise ValueError(f"KrigingGP needs at least {n_par + 2} points for a {self.trend} "
-                             f"trend in {X.shape[1]}-D, got {len(y)}")
+                             f"trend in {X.shape[1]}-D, got {len(y)} sample(s)")
         if np.ptp(y) == 0:
             raise ValueError(f"KrigingGP: all {len(y)} outputs equal {y[0]!r}; a constant has no "
                              "process variance to fit")

@@ -31,7 +31,8 @@ from crashfuse.method.projection import BRANCHES, INPUTS, BiasData, bias_data, b
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
 
 # File format version per kind: a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 3, "surrogate": 1}  # model 2: GMMGPBias gained the pooled GP; 3: the onset correction
+FORMAT = {"model": 4, "surrogate": 2}  # model 2: GMMGPBias gained the pooled GP; 3: the onset correction;
+# model 4 and surrogate 2: KrigingGP's fitted state under public names (L_, alpha_, Z_condition_, ...)
 # What the bias GPs learn by default: the paper's absolute bias; in the state mode the bias relative
 # to the CAE deceleration (a rate effect scales the force), chosen by grouped leave-one-test-out
 # density on the training tests (docs/method-rollout.md).
