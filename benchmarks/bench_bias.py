@@ -79,13 +79,13 @@ def configurations(n):
         rows.append(("exact (MLE on all, condition on all)", KrigingGP(max_fit_points=None, random_state=0)))
     if n <= 8000:
         rows += [("default (MLE on 300, condition on all)", KrigingGP(random_state=0)),
-                 ("GMMGPBias K=3 on v0 (default GPs)", GMMGPBias(3, cluster_inputs=[1], random_state=0))]
+                 ("GMMGPBias K=3 on v0 (default GPs)", GMMGPBias(n_clusters=3, cluster_inputs=[1], random_state=0))]
     if n > 2000:
         rows.append(("SoD (MLE on 300, condition on 2000)", KrigingGP(max_condition_points=2000, random_state=0)))
     if n > 4000:
         rows += [("SoD (MLE on 300, condition on 4000)", KrigingGP(max_condition_points=4000, random_state=0)),
                  ("GMMGPBias K=3 on v0, condition <= 2000/cluster",
-                  GMMGPBias(3, cluster_inputs=[1], max_condition_points=2000, random_state=0))]
+                  GMMGPBias(n_clusters=3, cluster_inputs=[1], max_condition_points=2000, random_state=0))]
     return rows
 
 

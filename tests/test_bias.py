@@ -442,8 +442,8 @@ def test_grouped_subset_is_even_within_groups_and_seed_free():
     X, y, groups = _grouped_data(n_groups=5, per=40)
     a = KrigingGP(max_fit_points=50, n_restarts=0, random_state=1).fit(X, y, groups)
     b = KrigingGP(max_fit_points=50, n_restarts=0, random_state=2).fit(X, y, groups)
-    np.testing.assert_array_equal(a._Z_hyp, b._Z_hyp)
-    assert np.bincount(a._g_hyp).tolist() == [10] * 5
+    np.testing.assert_array_equal(a.Z_fit_, b.Z_fit_)
+    assert np.bincount(a.groups_fit_).tolist() == [10] * 5
     with pytest.raises(ValueError, match="groups"):
         KrigingGP().fit(X, y, groups[:-1])
 
@@ -466,17 +466,17 @@ def test_likelihood_linear_algebra_is_bit_identical_to_the_plain_forms():
     of the plain expressions they replace: the optimiser's path, and so every score, depends on them."""
     from scipy.linalg import cholesky, lapack
 
-    from crashfuse.gp.kriging import _correlation, _factor_with_nugget, _inverse_from_factor, _self_correlation
+    from crashfuse.gp.kernels import correlation, factor_with_nugget, inverse_from_factor, self_correlation
     rng = np.random.default_rng(3)
     Z, theta, nugget = rng.normal(size=(120, 4)), np.array([0.3, 5.0, 1e-4, 80.0]), 1e-3
-    R = _self_correlation(Z, theta)
-    np.testing.assert_array_equal(R, _correlation(Z, Z, theta))
-    plain_L = cholesky(_correlation(Z, Z, theta) + nugget * np.eye(len(Z)), lower=True)
-    L = _factor_with_nugget(R, nugget)
+    R = self_correlation(Z, theta)
+    np.testing.assert_array_equal(R, correlation(Z, Z, theta))
+    plain_L = cholesky(correlation(Z, Z, theta) + nugget * np.eye(len(Z)), lower=True)
+    L = factor_with_nugget(R, nugget)
     np.testing.assert_array_equal(L, plain_L)
     Kinv = lapack.dpotri(plain_L, lower=1)[0]
     plain_inverse = np.tril(Kinv) + np.tril(Kinv, -1).T
-    inverse, info = _inverse_from_factor(L)
+    inverse, info = inverse_from_factor(L)
     assert info == 0 and inverse.flags.c_contiguous == plain_inverse.flags.c_contiguous
     np.testing.assert_array_equal(inverse, plain_inverse)
 
@@ -591,7 +591,7 @@ def _time(X):
 def onset_model():
     X, y, groups = _onset_data()
     base = GMMGPBias(n_clusters=1, trend="zero", random_state=0)
-    return OnsetCorrectedBias(base, _time, window=(1.0, 1.3), random_state=0).fit(X, y, groups)
+    return OnsetCorrectedBias(base=base, time=_time, window=(1.0, 1.3), random_state=0).fit(X, y, groups)
 
 
 def test_onset_correction_learns_the_time_locked_error_of_the_base_model(onset_model):
@@ -621,6 +621,6 @@ def test_onset_correction_fades_out_and_leaves_bands_to_the_base_model(onset_mod
 
 def test_onset_correction_needs_three_tests_in_its_window():
     X, y, groups = _onset_data(speeds=(4.0, 6.0))
-    model = OnsetCorrectedBias(GMMGPBias(trend="zero", random_state=0), _time, window=(1.0, 1.3)).fit(X, y, groups)
+    model = OnsetCorrectedBias(base=GMMGPBias(trend="zero", random_state=0), time=_time, window=(1.0, 1.3)).fit(X, y, groups)
     assert model.onset_gp_ is None
     np.testing.assert_array_equal(model.predict(X), model.base_.predict(X))

@@ -1,141 +1,39 @@
-"""Universal kriging: a Gaussian process with a GLS trend (paper Eq. 16-20).
+"""Universal kriging as a scikit-learn estimator: a Gaussian process with a GLS trend (paper Eq. 16-20).
 
-Pure array code. Inputs ``X`` have shape (n, d) in whatever SI units the caller uses
-(e.g. ``[s m, v0 m/s, w_f kg, w_r kg]``); the target ``y`` has shape (n,). The estimator
-standardises its inputs internally, so nothing here depends on units. The equations as
-implemented, and the paper's slips fixed, are in ``docs/bias-model.md``.
+:class:`KrigingGP` holds the settings and the fitted state and composes the jobs of the other ``gp`` modules:
+the correlation and trend basis (:mod:`~crashfuse.gp.kernels`), the concentrated likelihood
+(:mod:`~crashfuse.gp.likelihood`), its maximisation and the theta bound chosen by grouped CV
+(:mod:`~crashfuse.gp.optimise`), the row subsets (:mod:`~crashfuse.gp.subsets`), conditioning and prediction
+(:mod:`~crashfuse.gp.posterior`), leave-one-group-out residuals, band calibration and test-to-test scatter
+(:mod:`~crashfuse.gp.grouped`) and joint draws (:mod:`~crashfuse.gp.sampling`).
+
+Inputs ``X`` have shape (n, d) in whatever SI units the caller uses (e.g. ``[s m, v0 m/s, w_f kg, w_r kg]``);
+the target ``y`` has shape (n,). The estimator standardises its inputs (``Z``) and outputs (``u``) internally,
+so nothing here depends on units. The equations as implemented, and the paper's slips fixed, are in
+``docs/bias-model.md``.
 """
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
-from scipy.linalg import cholesky, lapack, solve_triangular
-from scipy.optimize import minimize
-from scipy.spatial.distance import cdist, pdist, squareform
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.preprocessing import StandardScaler
 from sklearn.utils import check_random_state
-from sklearn.utils.validation import check_array, check_is_fitted, check_X_y
+from sklearn.utils.validation import check_is_fitted, validate_data
 
+from crashfuse.gp.grouped import grouped_cv_log_density, grouped_residuals, scatter_needs, variance_factor
+from crashfuse.gp.kernels import TRENDS, correlation, design, independent_columns
+from crashfuse.gp.likelihood import concentrated_log_likelihood
+from crashfuse.gp.optimise import choose_theta_bound, log_bounds
+from crashfuse.gp.posterior import condition, latent_variance, predictive_mean, variance_parts
+from crashfuse.gp.sampling import joint_draws
+from crashfuse.gp.subsets import condition_subset, random_subset, stratified_subset
 from crashfuse.gp.threads import limit_blas
 
-__all__ = ["KrigingGP", "SEED_MAX", "stratified_subset"]
+__all__ = ["KrigingGP", "SEED_MAX"]
 
 SEED_MAX = 2**31 - 1  # exclusive upper bound of the integer seeds handed to sub-estimators
-_TRENDS = ("zero", "constant", "linear")
 _CHUNK = 2048  # prediction points per block: bounds the (n_train, chunk) work arrays
-_JITTERS = 10.0 ** np.arange(-12, -3)  # relative jitters tried, in order, for joint draws
-_FAILED = 1e300  # objective value where K is not numerically positive definite
-# The scatter refits (one per left-out test) stop at a relative likelihood change of 1e-6, not
-# scipy's 2e-9: they only size the test band. The main fit keeps scipy's default, where a
-# looser tolerance can end in another local optimum (docs/decisions.md).
-_SCATTER_LBFGS = {"ftol": 1e-6}
-_Z95 = 1.959963984540054  # two-sided 95 % normal quantile
-
-
-def _correlation(A, B, theta):
-    """Anisotropic Gaussian correlation ``prod_i exp(-theta_i (a_i - b_i)^2)``.
-
-    Parameters
-    ----------
-    A : ndarray, shape (n, d)
-    B : ndarray, shape (m, d)
-    theta : ndarray, shape (d,)
-        Positive correlation parameters (on the standardised inputs).
-
-    Returns
-    -------
-    ndarray, shape (n, m)
-    """
-    w = np.sqrt(theta)
-    C = cdist(A * w, B * w, "sqeuclidean")
-    np.negative(C, out=C)
-    return np.exp(C, out=C)
-
-
-def _self_correlation(A, theta):
-    """``_correlation(A, A, theta)``, bit for bit, with one exponential per pair instead of two.
-
-    The exponential dominates the likelihood's correlation matrix; ``pdist`` gives each pair's
-    squared distance exactly as ``cdist`` does, so mirroring the upper triangle changes no bit.
-
-    Parameters
-    ----------
-    A : ndarray, shape (n, d)
-    theta : ndarray, shape (d,)
-
-    Returns
-    -------
-    ndarray, shape (n, n), C-contiguous and exactly symmetric, ones on the diagonal.
-    """
-    w = np.sqrt(theta)
-    d = pdist(A * w, "sqeuclidean")
-    np.negative(d, out=d)
-    R = squareform(np.exp(d, out=d), checks=False)
-    np.fill_diagonal(R, 1.0)  # exp(-0) of cdist's diagonal
-    return R
-
-
-def _factor_with_nugget(R, nugget):
-    """Lower Cholesky factor of ``R + nugget I`` for an exactly symmetric ``R``, computed in ``R``'s memory.
-
-    ``R.T`` is Fortran-ordered, so LAPACK factorises it in place instead of copying it first; being
-    symmetric it is the same matrix, and the factor is the one
-    ``cholesky(R + nugget * np.eye(n), lower=True)`` returns, bit for bit.
-
-    Raises
-    ------
-    numpy.linalg.LinAlgError
-        ``R + nugget I`` is not numerically positive definite.
-    """
-    R.flat[::len(R) + 1] += nugget
-    return cholesky(R.T, lower=True, overwrite_a=True, check_finite=False)
-
-
-def _inverse_from_factor(L):
-    """``K^-1`` from the lower Cholesky factor ``L`` of ``K`` (LAPACK ``dpotri``), overwriting ``L``.
-
-    ``dpotri`` fills the lower triangle; the upper one is zero (``cholesky`` cleans it), so adding
-    the transpose and halving the doubled diagonal mirrors it exactly (sums with 0 and the halving
-    are exact), in one pass instead of two ``tril`` copies.
-
-    Returns
-    -------
-    Kinv : ndarray, shape (n, n)
-        C-ordered (the transposed view of LAPACK's Fortran-ordered result: the same symmetric
-        matrix), so products with it are summed as before.
-    info : int
-        LAPACK's status; non-zero means ``K`` is singular.
-    """
-    Kinv, info = lapack.dpotri(L, lower=1, overwrite_c=1)
-    Kinv += Kinv.T
-    Kinv.flat[::len(Kinv) + 1] *= 0.5
-    return Kinv.T, info
-
-
-def _independent_columns(Z, tol=1e-8):
-    """Indices of a maximal linearly independent set of ``[1, Z]`` columns (greedy, in order).
-
-    Parameters
-    ----------
-    Z : ndarray, shape (n, d)
-        Standardised inputs.
-
-    Returns
-    -------
-    list of int
-        Columns of ``Z`` kept in the linear trend (the intercept is always kept).
-    """
-    kept, basis = [], np.ones((Z.shape[0], 1))
-    for j in range(Z.shape[1]):
-        trial = np.column_stack([basis, Z[:, j]])
-        s = np.linalg.svd(trial, compute_uv=False)
-        if s[-1] > tol * s[0]:
-            kept.append(j)
-            basis = trial
-    return kept
 
 
 class KrigingGP(RegressorMixin, BaseEstimator):
@@ -226,13 +124,39 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         Test-to-test scatter in (y units)^2 (0 without ``estimate_scatter``): the
         smallest variance that, added to the latent variance, puts 95 % of the training points
         inside the 95 % band when each test is predicted by the GP refitted without it
-        (``_scatter_needs``). What a new group (test) scatters about the latent function beyond
+        (:func:`crashfuse.gp.grouped.scatter_needs`). What a new group (test) scatters about the latent function beyond
         the function's uncertainty, white noise included; the latent draws leave it out.
     cv_scores_ : dict of float to float
         Grouped leave-one-group-out log density per candidate bound (empty without groups).
+    n_features_in_ : int
+        Number of inputs ``d`` seen in ``fit``.
+    y_mean_, y_std_ : float
+        Output normalisation ``u = (y - y_mean_) / y_std_`` (``y_mean_`` is 0 for the zero trend,
+        ``y_std_`` 1 without ``normalize_y``).
+    Z_fit_ : ndarray, shape (n_fit_, d)
+        Standardised inputs of the hyperparameter-fit subset (the likelihood's data).
+    u_fit_ : ndarray, shape (n_fit_,)
+        Normalised outputs of that subset.
+    groups_fit_ : ndarray, shape (n_fit_,) or None
+        Their groups (None without ``groups``).
+    Z_condition_ : ndarray, shape (n_condition_, d)
+        Standardised inputs conditioned on.
+    L_ : ndarray, shape (n_condition_, n_condition_)
+        Lower Cholesky factor of ``K = R + nugget I`` on the conditioning set.
+    alpha_ : ndarray, shape (n_condition_,)
+        ``K^-1 (u - H beta)`` (normalised units).
+    Ht_ : ndarray, shape (n_condition_, p)
+        ``L^-1 H``.
+    LM_ : ndarray, shape (p, p)
+        Lower Cholesky factor of ``H^T K^-1 H``.
+    beta_norm_ : ndarray, shape (p,)
+        Trend coefficients in normalised units.
+    sigma2_norm_ : float
+        Process variance in normalised units, calibrated (``sigma2_ = sigma2_norm_ * y_std_**2``).
     """
 
-    def __init__(self, trend="constant", theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0),
+
+    def __init__(self, *, trend="constant", theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0),
                  n_restarts=2, max_fit_points=300, max_condition_points=None,
                  normalize_y=True, blas_threads=1, random_state=None, theta_max_candidates=None,
                  calibrate_variance=False, estimate_scatter=True):
@@ -267,101 +191,114 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         -------
         self
         """
-        X, y = self._check_training_data(X, y)
+        X, y = self._validate_training_data(X, y)
         if groups is not None and len(groups) != len(y):
             raise ValueError(f"groups has {len(groups)} entries for {len(y)} rows")
         Z = self.scaler_.transform(X)
         centre = self.normalize_y and self.trend != "zero"  # a zero-mean prior must stay zero in y units
-        self._y_mean, self._y_std = (y.mean() if centre else 0.0), (y.std() if self.normalize_y else 1.0)
-        u = (y - self._y_mean) / self._y_std
+        self.y_mean_, self.y_std_ = (y.mean() if centre else 0.0), (y.std() if self.normalize_y else 1.0)
+        u = (y - self.y_mean_) / self.y_std_
         rng = check_random_state(self.random_state)
         if groups is None:
-            i_fit = self._subset(len(u), self.max_fit_points, rng)
+            i_fit = random_subset(len(u), self.max_fit_points, rng)
         else:
             groups = np.asarray(groups)
             i_fit = stratified_subset(groups, self.max_fit_points)
-        self._Z_hyp, self._u_hyp = Z[i_fit], u[i_fit]
-        self._g_hyp = None if groups is None else groups[i_fit]
+        self.Z_fit_, self.u_fit_ = Z[i_fit], u[i_fit]
+        self.groups_fit_ = None if groups is None else groups[i_fit]
         self.n_fit_ = len(i_fit)
-        eta = self._choose_bound(rng)
+        eta, self.theta_max_, self.log_marginal_likelihood_value_, self.cv_scores_ = choose_theta_bound(
+            self.Z_fit_, self.u_fit_, self._design(self.Z_fit_), self.groups_fit_, rng,
+            theta_bounds=self.theta_bounds, nugget_bounds=self.nugget_bounds,
+            candidates=self.theta_max_candidates, n_restarts=self.n_restarts)
         self.theta_, self.nugget_ = np.exp(eta[:-1]), float(np.exp(eta[-1]))
-        i_cond = self._condition_subset(len(u), i_fit, rng)
+        i_cond = condition_subset(len(u), i_fit, self.max_condition_points, rng)
         self._condition(Z[i_cond], u[i_cond])
         self._calibrate(u[i_cond], None if groups is None else groups[i_cond])
         return self
+
+    def _validate_training_data(self, X, y):
+        """Validate settings and data; fit the scaler and choose the trend columns.
+
+        Returns
+        -------
+        X : ndarray, shape (n, d)
+        y : ndarray, shape (n,)
+        """
+        if self.trend not in TRENDS:
+            raise ValueError(f"trend must be one of {TRENDS}, got {self.trend!r}")
+        X, y = validate_data(self, X, y, y_numeric=True)
+        self.scaler_ = StandardScaler().fit(X)
+        Z = self.scaler_.transform(X)
+        self.trend_columns_ = independent_columns(Z) if self.trend == "linear" else []
+        n_par = (self.trend != "zero") + len(self.trend_columns_)
+        if len(y) < n_par + 2:
+            raise ValueError(f"KrigingGP needs at least {n_par + 2} points for a {self.trend} "
+                             f"trend in {X.shape[1]}-D, got {len(y)} sample(s)")
+        if np.ptp(y) == 0:
+            raise ValueError(f"KrigingGP: all {len(y)} outputs equal {y[0]!r}; a constant has no "
+                             "process variance to fit")
+        return X, y
+
+    def _design(self, Z):
+        """Trend design matrix ``H``, shape (n, p), at standardised inputs ``Z`` (n, d)."""
+        return design(Z, self.trend, self.trend_columns_)
+
+    def _eta(self):
+        """The fitted ``[log theta_1..d, log nugget]``, shape (d + 1,)."""
+        return np.log(np.r_[self.theta_, self.nugget_])
+
+    def _condition(self, Z, u):
+        """Condition on ``(Z, u)`` at the fitted hyperparameters and store what prediction needs."""
+        self.L_, self.beta_norm_, self.alpha_, self.sigma2_norm_, self.Ht_, self.LM_ = condition(
+            Z, u, self._design(Z), self.theta_, self.nugget_)
+        self.Z_condition_ = Z
+        self.n_condition_ = len(u)
+        self.sigma2_ = self.sigma2_norm_ * self.y_std_**2
+        self.beta_ = self.beta_norm_ * self.y_std_
+        if self.beta_.size:
+            self.beta_[0] += self.y_mean_
 
     def _calibrate(self, u_cond, g_cond):
         """Scale ``sigma^2`` so the 95 % band holds 95 % of the grouped leave-one-out residuals (if asked),
         then estimate the test-to-test scatter from grouped refits on the conditioning set."""
         self.variance_factor_, self.scatter_var_ = 1.0, 0.0
-        if not self.calibrate_variance or self._g_hyp is None or len(np.unique(self._g_hyp)) < 3:
+        if not self.calibrate_variance or self.groups_fit_ is None or len(np.unique(self.groups_fit_)) < 3:
             return
-        eta = np.log(np.r_[self.theta_, self.nugget_])
-        self.variance_factor_ = self._variance_factor(eta)
-        self._sigma2 *= self.variance_factor_
+        eta = self._eta()
+        hyp = (self.Z_fit_, self.u_fit_, self._design(self.Z_fit_), self.groups_fit_)
+        self.variance_factor_ = variance_factor(eta, *hyp)
+        self.sigma2_norm_ *= self.variance_factor_
         self.sigma2_ *= self.variance_factor_
-        need = self._scatter_needs(eta, self._Z_train, u_cond, g_cond) if self.estimate_scatter else np.empty(0)
+        if not self.estimate_scatter:
+            return
+        bounds = log_bounds(self.n_features_in_, self.theta_bounds, self.theta_max_, self.nugget_bounds)
+        cond = (self.Z_condition_, u_cond, self._design(self.Z_condition_), g_cond)
+        need = scatter_needs(eta, bounds, hyp, cond)
         if need.size:
-            self.scatter_var_ = max(0.0, float(np.quantile(need, 0.95))) * self._y_std**2
+            self.scatter_var_ = max(0.0, float(np.quantile(need, 0.95))) * self.y_std_**2
 
-    def _variance_factor(self, eta):
-        """``(q95 / 1.96)^2`` (at least 1) of the closed-form grouped residuals on the hyperparameter subset."""
-        if len(np.unique(self._g_hyp)) < 3:
-            return 1.0
-        res = self._grouped_residuals(eta, self._Z_hyp, self._u_hyp, self._g_hyp)
-        if res is None:
-            return 1.0
-        return max(1.0, (float(np.quantile(np.abs(res[0]) / np.sqrt(res[1]), 0.95)) / _Z95) ** 2)
+    # ------------------------------------------------------- fitted-model scores
+    @limit_blas
+    def log_marginal_likelihood(self, params, eval_gradient=False):
+        """Concentrated log-likelihood on the hyperparameter-fit data.
 
-    def _scatter_needs(self, eta, Z, u, groups):
-        """Variance each conditioning point needs beyond the latent band when its test is left out.
-
-        For each group (test) the GP is refitted without it - likelihood re-optimised from ``eta``
-        under the chosen theta bound, variance factor recomputed, conditioned on the other groups'
-        points - and predicts the group's points: ``need = (e / 1.96)^2 - latent variance``
-        (normalised units). The closed-form leave-one-group-out at fixed hyperparameters is far
-        more optimistic (state folds of the paper campaign: scatter 0.00-0.06 vs 0.05-0.11
-        relative); a refit whose factorisation fails is left out.
+        Parameters
+        ----------
+        params : array_like, shape (d + 1,)
+            ``[log theta_1..d, log nugget]`` (theta on standardised inputs).
+        eval_gradient : bool
+            Also return the analytic gradient with respect to ``params``.
 
         Returns
         -------
-        ndarray, shape (n_needs,)
+        float, or (float, ndarray of shape (d + 1,))
+            Log-likelihood in normalised-output units (differs from the one in y units by
+            the constant ``-n log(y_std)``).
         """
-        bounds = self._bounds(self.theta_max_)
-        needs = []
-        for grp in np.unique(groups):
-            inner, keep = copy.copy(self), self._g_hyp != grp  # shares settings, scaler and trend columns
-            inner._Z_hyp, inner._u_hyp, inner._g_hyp = self._Z_hyp[keep], self._u_hyp[keep], self._g_hyp[keep]
-            e = minimize(inner._objective, eta, jac=True, method="L-BFGS-B", bounds=bounds, options=_SCATTER_LBFGS).x
-            inner.theta_, inner.nugget_ = np.exp(e[:-1]), float(np.exp(e[-1]))
-            try:
-                inner._condition(Z[groups != grp], u[groups != grp])
-            except np.linalg.LinAlgError:
-                continue
-            mean, V, W = inner._parts(Z[groups == grp])
-            var = (1.0 - (V**2).sum(axis=0) + (W**2).sum(axis=0)) * inner._sigma2 * inner._variance_factor(e)
-            needs.append((u[groups == grp] - mean) ** 2 / _Z95**2 - var)
-        return np.concatenate(needs) if needs else np.empty(0)
-
-    def _choose_bound(self, rng):
-        """ML hyperparameters under the theta bound with the best grouped CV log density."""
-        self.cv_scores_ = {}
-        candidates = self.theta_max_candidates
-        if not candidates or self._g_hyp is None or len(np.unique(self._g_hyp)) < 3:
-            self.theta_max_ = float(self.theta_bounds[1])
-            return self._optimise(rng, self.theta_max_)
-        best, eta = None, None
-        # Largest bound first with every restart; a smaller bound reuses that optimum when it lies
-        # inside the bound (it is then optimal there too), else starts from it clipped.
-        for hi in sorted((float(c) for c in candidates), reverse=True):
-            eta = self._optimise(rng, hi) if eta is None else self._warm_optimise(eta, hi)
-            ll = self.log_marginal_likelihood_value_
-            score = self._grouped_cv(eta, self._Z_hyp, self._u_hyp, self._g_hyp)
-            self.cv_scores_[hi] = score
-            if best is None or score > best[0]:
-                best = (score, hi, eta, ll)
-        _, self.theta_max_, eta, self.log_marginal_likelihood_value_ = best
-        return eta
+        check_is_fitted(self)
+        return concentrated_log_likelihood(np.asarray(params, float), self.Z_fit_, self.u_fit_,
+                                           self._design(self.Z_fit_), eval_gradient)
 
     @limit_blas
     def grouped_cv_log_density(self, groups=None):
@@ -375,7 +312,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
 
         Parameters
         ----------
-        groups : array_like, shape (n_hyp,), optional
+        groups : array_like, shape (n_fit_,), optional
             Group of each hyperparameter-fit point; default the groups given to ``fit``.
 
         Returns
@@ -384,11 +321,10 @@ class KrigingGP(RegressorMixin, BaseEstimator):
             Mean log density per point (higher is better).
         """
         check_is_fitted(self)
-        g = self._g_hyp if groups is None else np.asarray(groups)
+        g = self.groups_fit_ if groups is None else np.asarray(groups)
         if g is None:
             raise ValueError("grouped_cv_log_density needs groups (pass them to fit or here)")
-        eta = np.log(np.r_[self.theta_, self.nugget_])
-        return self._grouped_cv(eta, self._Z_hyp, self._u_hyp, g)
+        return grouped_cv_log_density(self._eta(), self.Z_fit_, self.u_fit_, self._design(self.Z_fit_), g)
 
     @limit_blas
     def grouped_residuals(self, X, y, groups):
@@ -412,262 +348,19 @@ class KrigingGP(RegressorMixin, BaseEstimator):
             matrix or a group's block is numerically singular.
         """
         check_is_fitted(self)
-        X, y, groups = check_array(X), np.asarray(y, dtype=float), np.asarray(groups)
+        X, y, groups = validate_data(self, X, reset=False), np.asarray(y, dtype=float), np.asarray(groups)
         if len(np.unique(groups)) < 2:
             raise ValueError("grouped_residuals needs at least two groups")
-        u = (y - self._y_mean) / self._y_std
-        res = self._grouped_residuals(np.log(np.r_[self.theta_, self.nugget_]), self.scaler_.transform(X), u, groups)
-        return None if res is None else res[0] * self._y_std
-
-    def _grouped_cv(self, eta, Z, u, groups):
-        """Mean leave-one-group-out marginal log density (see :meth:`grouped_cv_log_density`)."""
-        res = self._grouped_residuals(eta, Z, u, groups)
-        if res is None:
-            return -np.inf
-        e, var = res
-        return float(np.mean(-0.5 * (np.log(2 * np.pi * var) + e**2 / var)))
-
-    def _grouped_residuals(self, eta, Z, u, groups):
-        """Leave-one-group-out residuals and their predictive variances (normalised units).
-
-        Returns
-        -------
-        (e, var) : two ndarrays of shape (n,), or None where ``K`` or a block is singular.
-        """
-        try:
-            L = _factor_with_nugget(_self_correlation(Z, np.exp(eta[:-1])), np.exp(eta[-1]))
-        except np.linalg.LinAlgError:
-            return None
-        H = self._design(Z)
-        _, alpha, sigma2, _ = self._gls(L, H, u)  # alpha = P u
-        Kinv = _inverse_from_factor(L)[0]
-        KiH = Kinv @ H
-        P = Kinv - KiH @ np.linalg.solve(H.T @ KiH, KiH.T)
-        e, var = np.empty(len(u)), np.empty(len(u))
-        for grp in np.unique(groups):
-            idx = np.flatnonzero(groups == grp)
-            try:
-                C = np.linalg.inv(P[np.ix_(idx, idx)])
-            except np.linalg.LinAlgError:
-                return None
-            e[idx], var[idx] = C @ alpha[idx], np.diag(C) * sigma2
-        return None if np.any(var <= 0) else (e, var)
-
-    def _check_training_data(self, X, y):
-        """Validate settings and data; fit the scaler and choose the trend columns.
-
-        Returns
-        -------
-        X : ndarray, shape (n, d)
-        y : ndarray, shape (n,)
-        """
-        if self.trend not in _TRENDS:
-            raise ValueError(f"trend must be one of {_TRENDS}, got {self.trend!r}")
-        X, y = check_X_y(X, y, y_numeric=True)
-        self.n_features_in_ = X.shape[1]
-        self.scaler_ = StandardScaler().fit(X)
+        u = (y - self.y_mean_) / self.y_std_
         Z = self.scaler_.transform(X)
-        self.trend_columns_ = _independent_columns(Z) if self.trend == "linear" else []
-        n_par = (self.trend != "zero") + len(self.trend_columns_)
-        if len(y) < n_par + 2:
-            raise ValueError(f"KrigingGP needs at least {n_par + 2} points for a {self.trend} "
-                             f"trend in {X.shape[1]}-D, got {len(y)}")
-        if np.ptp(y) == 0:
-            raise ValueError(f"KrigingGP: all {len(y)} outputs equal {y[0]!r}; a constant has no "
-                             "process variance to fit")
-        return X, y
-
-    @staticmethod
-    def _subset(n, limit, rng):
-        """Sorted seeded random subset of ``range(n)`` of size ``min(n, limit)``."""
-        if limit is None or n <= limit:
-            return np.arange(n)
-        return np.sort(rng.choice(n, size=int(limit), replace=False))
-
-    def _condition_subset(self, n, i_fit, rng):
-        """Conditioning set: all points, or the fit subset topped up at random to the limit."""
-        limit = self.max_condition_points
-        if limit is None or n <= limit:
-            return np.arange(n)
-        if len(i_fit) >= limit:
-            return np.sort(rng.choice(i_fit, size=int(limit), replace=False))
-        rest = np.setdiff1d(np.arange(n), i_fit)
-        extra = rng.choice(rest, size=int(limit) - len(i_fit), replace=False)
-        return np.sort(np.concatenate([i_fit, extra]))
-
-    def _bounds(self, theta_max):
-        """Bounds on ``[log theta_1..d, log nugget]``, shape (d + 1, 2)."""
-        d = self.n_features_in_
-        lo = np.r_[np.full(d, np.log(self.theta_bounds[0])), np.log(self.nugget_bounds[0])]
-        hi = np.r_[np.full(d, np.log(theta_max)), np.log(self.nugget_bounds[1])]
-        return np.column_stack([lo, hi])
-
-    def _optimise(self, rng, theta_max):
-        """Best ``[log theta, log nugget]`` over the fixed start and the random restarts."""
-        bounds = self._bounds(theta_max)
-        first = np.clip(np.r_[np.zeros(self.n_features_in_), np.log(1e-3)], bounds[:, 0], bounds[:, 1])
-        starts = [first] + [rng.uniform(bounds[:, 0], bounds[:, 1]) for _ in range(self.n_restarts)]
-        best_eta, best_f = None, np.inf
-        for x0 in starts:
-            res = minimize(self._objective, x0, jac=True, method="L-BFGS-B", bounds=bounds)
-            if res.fun < min(best_f, _FAILED):
-                best_eta, best_f = res.x, res.fun
-        if best_eta is None:
-            raise ValueError("KrigingGP: the likelihood could not be evaluated at any start "
-                             "(duplicate inputs with conflicting outputs and a zero nugget?)")
-        self.log_marginal_likelihood_value_ = -best_f
-        return best_eta
-
-    def _warm_optimise(self, eta, theta_max):
-        """The optimum under a smaller theta bound, from the optimum ``eta`` under a larger one."""
-        bounds = self._bounds(theta_max)
-        if np.all(eta <= bounds[:, 1]):
-            self.log_marginal_likelihood_value_ = -self._objective(eta)[0]
-            return eta
-        first = np.clip(np.r_[np.zeros(self.n_features_in_), np.log(1e-3)], bounds[:, 0], bounds[:, 1])
-        fits = [minimize(self._objective, x0, jac=True, method="L-BFGS-B", bounds=bounds)
-                for x0 in (np.clip(eta, bounds[:, 0], bounds[:, 1]), first)]
-        res = min(fits, key=lambda r: r.fun)
-        self.log_marginal_likelihood_value_ = -res.fun
-        return res.x
-
-    def _objective(self, eta):
-        """Negative concentrated log-likelihood and its gradient, for the optimiser."""
-        ll, grad = self._concentrated(eta, self._Z_hyp, self._u_hyp, gradient=True)
-        if not np.isfinite(ll):
-            return _FAILED, np.zeros_like(eta)
-        return -ll, -grad
-
-    def _design(self, Z):
-        """Trend design matrix ``H``, shape (n, p), on standardised inputs ``Z`` (n, d); p = 0 for no trend."""
-        if self.trend == "zero":
-            return np.empty((len(Z), 0))
-        return np.column_stack([np.ones(len(Z)), Z[:, self.trend_columns_]])
-
-    def _concentrated(self, eta, Z, u, gradient=False):
-        """Concentrated log-likelihood (beta GLS, sigma^2 = r^T K^-1 r / n) and gradient.
-
-        Parameters
-        ----------
-        eta : ndarray, shape (d + 1,)
-            ``[log theta_1..d, log nugget]``.
-        Z : ndarray, shape (n, d)
-            Standardised inputs.
-        u : ndarray, shape (n,)
-            (Normalised) outputs.
-        gradient : bool
-            Also return the gradient with respect to ``eta``.
-
-        Returns
-        -------
-        ll : float
-            ``-n/2 log(2 pi sigma^2) - 1/2 log|K| - n/2``, ``K = R + nugget I``; ``-inf`` if
-            ``K`` is not numerically positive definite.
-        grad : ndarray, shape (d + 1,), only if ``gradient``
-        """
-        n = len(u)
-        theta, nugget = np.exp(eta[:-1]), np.exp(eta[-1])
-        R = _self_correlation(Z, theta)
-        try:
-            L = _factor_with_nugget(R.copy(), nugget)  # R is needed for the gradient
-        except np.linalg.LinAlgError:
-            return (-np.inf, np.zeros_like(eta)) if gradient else -np.inf
-        alpha, sigma2 = self._gls(L, self._design(Z), u)[1:3]
-        ll = -0.5 * n * np.log(2 * np.pi * sigma2) - np.log(np.diag(L)).sum() - 0.5 * n
-        if not gradient:
-            return ll
-        # d ll / d eta_j = 1/2 tr(W dK/d eta_j), W = alpha alpha^T / sigma^2 - K^-1; beta and
-        # sigma^2 are stationary points of the likelihood, so their own derivatives drop out.
-        # The n x n steps work in place (same operations, same bits): this runs ~1000 times a fit.
-        Kinv, info = _inverse_from_factor(L)
-        if info != 0:
-            return -np.inf, np.zeros_like(eta)
-        W = np.outer(alpha, alpha)
-        W /= sigma2
-        W -= Kinv
-        trace_w = np.trace(W)
-        A = np.multiply(W, R, out=R)  # dK/dlog theta_k = -theta_k D2_k * R, elementwise
-        AZ = A @ Z
-        # sum_ij A_ij (z_ik - z_jk)^2 = 2 sum_i z_ik^2 (A 1)_i - 2 z_k^T A z_k for symmetric A
-        quad = (Z**2 * A.sum(axis=1)[:, None]).sum(axis=0) - (Z * AZ).sum(axis=0)
-        grad = np.r_[-theta * quad, 0.5 * nugget * trace_w]
-        return ll, grad
-
-    @staticmethod
-    def _gls(L, H, u):
-        """GLS trend given the Cholesky factor ``L`` of ``K``.
-
-        Returns
-        -------
-        beta : ndarray, shape (p,)
-        alpha : ndarray, shape (n,)
-            ``K^-1 (u - H beta)``.
-        sigma2 : float
-            ``(u - H beta)^T K^-1 (u - H beta) / n``.
-        Ht : ndarray, shape (n, p)
-            ``L^-1 H``.
-        """
-        Ht = solve_triangular(L, H, lower=True, check_finite=False)
-        ut = solve_triangular(L, u, lower=True, check_finite=False)
-        beta = np.linalg.lstsq(Ht, ut, rcond=None)[0]
-        rt = ut - Ht @ beta
-        alpha = solve_triangular(L, rt, lower=True, trans="T", check_finite=False)
-        return beta, alpha, float(rt @ rt) / len(u), Ht
-
-    def _condition(self, Z, u):
-        """Factorise ``K`` on the conditioning set and store what prediction needs."""
-        self._L = _factor_with_nugget(_self_correlation(Z, self.theta_), self.nugget_)
-        self._beta, self._alpha, self._sigma2, self._Ht = self._gls(self._L, self._design(Z), u)
-        self._LM = cholesky(self._Ht.T @ self._Ht, lower=True, check_finite=False)
-        self._Z_train = Z
-        self.n_condition_ = len(u)
-        self.sigma2_ = self._sigma2 * self._y_std**2
-        self.beta_ = self._beta * self._y_std
-        if self.beta_.size:
-            self.beta_[0] += self._y_mean
-
-    @limit_blas
-    def log_marginal_likelihood(self, params, eval_gradient=False):
-        """Concentrated log-likelihood on the hyperparameter-fit data.
-
-        Parameters
-        ----------
-        params : array_like, shape (d + 1,)
-            ``[log theta_1..d, log nugget]`` (theta on standardised inputs).
-        eval_gradient : bool
-            Also return the analytic gradient with respect to ``params``.
-
-        Returns
-        -------
-        float, or (float, ndarray of shape (d + 1,))
-            Log-likelihood in normalised-output units (differs from the one in y units by
-            the constant ``-n log(y_std)``).
-        """
-        check_is_fitted(self)
-        return self._concentrated(np.asarray(params, float), self._Z_hyp, self._u_hyp, eval_gradient)
+        res = grouped_residuals(self._eta(), Z, u, self._design(Z), groups)
+        return None if res is None else res[0] * self.y_std_
 
     # --------------------------------------------------------------- prediction
-    def _mean(self, Zs):
-        """Mean (normalised) at standardised points ``Zs`` (m, d) and their correlations ``r`` (n, m)."""
-        r = _correlation(self._Z_train, Zs, self.theta_)
-        return self._design(Zs) @ self._beta + r.T @ self._alpha, r
-
-    def _parts(self, Zs):
-        """Mean (normalised) and the two variance pieces at standardised points ``Zs`` (m, d).
-
-        Returns
-        -------
-        mean : ndarray, shape (m,)
-        V : ndarray, shape (n, m)
-            ``L^-1 r(x)``.
-        W : ndarray, shape (p, m)
-            ``L_M^-1 u(x)``, ``u = h(x) - H^T K^-1 r(x)``, ``L_M L_M^T = H^T K^-1 H``.
-        """
-        mean, r = self._mean(Zs)
-        V = solve_triangular(self._L, r, lower=True, check_finite=False)
-        U = self._design(Zs).T - self._Ht.T @ V
-        W = solve_triangular(self._LM, U, lower=True, check_finite=False)
-        return mean, V, W
+    def _standardised(self, X):
+        """Validated ``X`` (its feature count that of ``fit``), standardised, shape (m, d)."""
+        check_is_fitted(self)
+        return self.scaler_.transform(validate_data(self, X, reset=False))
 
     @limit_blas
     def predict(self, X, return_std=False, include_noise=False):
@@ -686,23 +379,28 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         -------
         mean : ndarray, shape (m,)
         std : ndarray, shape (m,), only if ``return_std``
+
+        Raises
+        ------
+        ValueError
+            ``X`` has another number of columns than in ``fit``.
         """
-        check_is_fitted(self)
-        Zs = self.scaler_.transform(check_array(X))
+        Zs = self._standardised(X)
         means, stds = [], []
         for start in range(0, len(Zs), _CHUNK):
             chunk = Zs[start:start + _CHUNK]
-            if not return_std:  # the mean needs no triangular solve against the training points
-                means.append(self._mean(chunk)[0])
-                continue
-            mean, V, W = self._parts(chunk)
+            Hs = self._design(chunk)
+            mean, r = predictive_mean(self.Z_condition_, chunk, Hs, self.theta_, self.beta_norm_, self.alpha_)
             means.append(mean)
-            var = 1.0 - (V**2).sum(axis=0) + (W**2).sum(axis=0) + include_noise * self.nugget_
-            stds.append(np.sqrt(np.clip(var * self._sigma2, 0.0, None)))
-        mean = np.concatenate(means) * self._y_std + self._y_mean if means else np.empty(0)
+            if not return_std:  # the mean needs no triangular solve against the training points
+                continue
+            V, W = variance_parts(r, Hs, self.L_, self.Ht_, self.LM_)
+            var = latent_variance(V, W) + include_noise * self.nugget_
+            stds.append(np.sqrt(np.clip(var * self.sigma2_norm_, 0.0, None)))
+        mean = np.concatenate(means) * self.y_std_ + self.y_mean_ if means else np.empty(0)
         if not return_std:
             return mean
-        return mean, (np.concatenate(stds) if stds else np.empty(0)) * self._y_std
+        return mean, (np.concatenate(stds) if stds else np.empty(0)) * self.y_std_
 
     @limit_blas
     def predict_cov(self, X):
@@ -718,22 +416,25 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         cov : ndarray, shape (m, m)
             ``sigma^2 [R** - r^T K^-1 r + U^T (H^T K^-1 H)^-1 U]``, including the
             trend-estimation term.
+
+        Raises
+        ------
+        ValueError
+            ``X`` has another number of columns than in ``fit``.
         """
-        check_is_fitted(self)
-        Zs = self.scaler_.transform(check_array(X))
-        mean, V, W = self._parts(Zs)
-        cov = _correlation(Zs, Zs, self.theta_) - V.T @ V + W.T @ W
-        return mean * self._y_std + self._y_mean, cov * (self._sigma2 * self._y_std**2)
+        Zs = self._standardised(X)
+        Hs = self._design(Zs)
+        mean, r = predictive_mean(self.Z_condition_, Zs, Hs, self.theta_, self.beta_norm_, self.alpha_)
+        V, W = variance_parts(r, Hs, self.L_, self.Ht_, self.LM_)
+        cov = correlation(Zs, Zs, self.theta_) - V.T @ V + W.T @ W
+        return mean * self.y_std_ + self.y_mean_, cov * (self.sigma2_norm_ * self.y_std_**2)
 
     @limit_blas
     def sample_functions(self, X, n_samples=1, random_state=None):
         """Joint draws of the latent bias function (no nugget) at the points ``X``.
 
-        The covariance includes the trend-estimation term. It is factorised by Cholesky
-        with a diagonal jitter of ``j * mean(diag(cov))``, ``j`` trying 1e-12, 1e-11, ...,
-        1e-4 in turn until the factorisation succeeds (smooth GPs on dense grids are
-        numerically singular); the added standard deviation is at most 1 % of the
-        average predictive one.
+        The covariance includes the trend-estimation term; it is factorised with the smallest
+        diagonal jitter that works (:func:`crashfuse.gp.sampling.jittered_cholesky`).
 
         Parameters
         ----------
@@ -744,54 +445,11 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         Returns
         -------
         ndarray, shape (n_samples, m)
+
+        Raises
+        ------
+        ValueError
+            ``X`` has another number of columns than in ``fit``.
         """
         mean, cov = self.predict_cov(X)
-        Lc = _jittered_cholesky(cov)
-        z = check_random_state(random_state).standard_normal((len(mean), n_samples))
-        return (mean[:, None] + Lc @ z).T
-
-
-def stratified_subset(groups, limit):
-    """Deterministic subset: about ``limit`` rows, evenly spaced within each group, sorted.
-
-    Parameters
-    ----------
-    groups : ndarray, shape (n,)
-    limit : int or None
-
-    Returns
-    -------
-    ndarray of int
-    """
-    n = len(groups)
-    if limit is None or n <= limit:
-        return np.arange(n)
-    keep = []
-    for grp in np.unique(groups):
-        idx = np.flatnonzero(groups == grp)
-        m = max(1, int(round(limit * len(idx) / n)))
-        keep.append(idx[np.unique(np.linspace(0, len(idx) - 1, m).round().astype(int))])
-    return np.sort(np.concatenate(keep))
-
-
-def _jittered_cholesky(cov):
-    """Lower Cholesky factor of ``cov + j mean(diag) I`` with the smallest working jitter.
-
-    Parameters
-    ----------
-    cov : ndarray, shape (m, m)
-
-    Returns
-    -------
-    ndarray, shape (m, m)
-    """
-    if cov.size == 0:
-        return cov
-    scale = max(float(np.mean(np.diag(cov))), np.finfo(float).tiny)
-    for j in _JITTERS:
-        try:
-            return cholesky(cov + j * scale * np.eye(len(cov)), lower=True, check_finite=False)
-        except np.linalg.LinAlgError:
-            continue
-    raise np.linalg.LinAlgError("predictive covariance is not positive semi-definite even with "
-                                f"a jitter of {_JITTERS[-1]:g} x its mean variance")
+        return joint_draws(mean, cov, n_samples, random_state)

@@ -11,7 +11,7 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.mixture import GaussianMixture
 from sklearn.preprocessing import StandardScaler
 from sklearn.utils import check_random_state
-from sklearn.utils.validation import check_array, check_is_fitted, check_X_y
+from sklearn.utils.validation import check_array, check_is_fitted, validate_data
 
 from crashfuse.errors import InputError
 from crashfuse.gp.kriging import SEED_MAX, KrigingGP
@@ -84,7 +84,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         GP index of each training point.
     """
 
-    def __init__(self, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
+    def __init__(self, *, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
                  theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0), n_restarts=2,
                  max_fit_points=300, max_condition_points=None, normalize_y=True, n_init=5,
                  reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None,
@@ -146,8 +146,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         """
         if self.assignment not in ("select", "blend"):
             raise ValueError(f"assignment must be 'select' or 'blend', got {self.assignment!r}")
-        X, y = check_X_y(X, y, y_numeric=True)
-        self.n_features_in_ = X.shape[1]
+        X, y = validate_data(self, X, y, y_numeric=True)
         need = self._min_points(X.shape[1])
         if len(y) < max(need, self.n_clusters):
             raise TooFewPointsError(f"GMMGPBias needs at least {max(need, self.n_clusters)} bias points "
@@ -223,7 +222,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
             Rows sum to one.
         """
         check_is_fitted(self)
-        X = check_array(X)
+        X = validate_data(self, X, reset=False)
         resp = self.gmm_.predict_proba(self._cluster_view(X))
         out = np.zeros((len(X), len(self.gps_)))
         np.add.at(out.T, self.component_to_gp_, resp.T)

@@ -416,7 +416,7 @@ def _fit_branch(data: BiasData, branch: str, k: int, assignment: str, seed: int,
         return None
     est = GMMGPBias(n_clusters=k, assignment=assignment, random_state=seed, **params)
     if onset:
-        est = OnsetCorrectedBias(est, functools.partial(nominal_time, d.columns), random_state=seed,
+        est = OnsetCorrectedBias(base=est, time=functools.partial(nominal_time, d.columns), random_state=seed,
                                  blas_threads=est.blas_threads)
     try:
         return est.fit(d.X, d.y, d.groups)

@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin, clone
-from sklearn.utils.validation import check_array, check_is_fitted, check_X_y
+from sklearn.utils.validation import check_array, check_is_fitted, validate_data
 
-from crashfuse.gp.kriging import KrigingGP, stratified_subset
+from crashfuse.gp.kriging import KrigingGP
+from crashfuse.gp.subsets import stratified_subset
 
 __all__ = ["OnsetCorrectedBias", "ONSET_WINDOW"]
 
@@ -56,7 +57,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         the residuals could not be computed (no correction).
     """
 
-    def __init__(self, base=None, time=None, window=ONSET_WINDOW, max_rows=ONSET_MAX_ROWS, blas_threads=1,
+    def __init__(self, *, base=None, time=None, window=ONSET_WINDOW, max_rows=ONSET_MAX_ROWS, blas_threads=1,
                  random_state=None):
         self.base = base
         self.time = time
@@ -79,7 +80,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         -------
         self
         """
-        X, y = check_X_y(X, y, y_numeric=True)
+        X, y = validate_data(self, X, y, y_numeric=True)
         groups = np.asarray(groups)
         self.base_ = clone(self.base).fit(X, y, groups)
         self.onset_gp_ = None
@@ -118,6 +119,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
 
     def predict(self, X, return_std=False):
         """Base prediction plus the correction; ``std`` (if asked) is the base model's."""
+        check_is_fitted(self)
         if not return_std:
             return self.base_.predict(X) + self.correction(X)
         mean, std = self.base_.predict(X, return_std=True)
@@ -125,6 +127,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
 
     def sample_functions(self, X, n_samples=1, random_state=None):
         """The base model's joint draws, each plus the correction, shape (n_samples, m)."""
+        check_is_fitted(self)
         return self.base_.sample_functions(X, n_samples, random_state) + self.correction(X)
 
     def scatter_std(self, X):
