@@ -12,7 +12,7 @@ import crashfuse.evaluation.loto as ev
 import crashfuse.method.model
 from crashfuse.cli import main
 from crashfuse.errors import InputError
-from crashfuse.io.campaign import write_campaign
+from crashfuse.io.campaign_write import write_campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.method.model import fit_model, load_model
 from crashfuse.reporting.tables import read_fold_json
