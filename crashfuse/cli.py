@@ -43,7 +43,7 @@ def _pulse_metrics(args) -> int:
 
 
 def _iso_score(args) -> int:
-    from crashfuse.signals.iso18571 import score_files
+    from crashfuse.io.rating import score_files
 
     scores = score_files(args.test, args.prediction, args.start_ms, args.end_ms)
     if args.json:
