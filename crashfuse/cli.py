@@ -153,6 +153,7 @@ def _evaluate(args) -> int:
     from crashfuse.evaluation.loto import evaluate
     from crashfuse.io.campaign import read_campaign
     from crashfuse.method.model import load_surrogate
+    from crashfuse.reporting.plots import plot_evaluation
 
     campaign = read_campaign(args.campaign)
     surrogate = load_surrogate(args.surrogate) if args.surrogate else None
@@ -163,6 +164,7 @@ def _evaluate(args) -> int:
                       holdout=args.holdout, use_companion=args.use_companion, assignment=args.assignment,
                       extra_inputs=args.extra_inputs, n_grid=args.n_grid, band=args.band, trend=args.trend,
                       pooled=args.pooled, onset=args.onset)
+    plot_evaluation(result, args.out, campaign)
     summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
     print(summary.mean().round(3).to_string())
     return 0
