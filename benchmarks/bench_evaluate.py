@@ -21,6 +21,7 @@ from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.campaign import read_campaign
 from crashfuse.method.model import fit_model
 from crashfuse.method.surrogate import CAESurrogate
+from crashfuse.reporting.plots import plot_evaluation
 
 DEFAULT_K = 1  # the timed single fold (model.choose_k picks K1 for paper, K3 for state: docs/method-rollout.md)
 
@@ -99,6 +100,8 @@ def main(argv=None) -> int:
                       n_jobs=args.jobs, surrogate=surrogate, use_companion=args.use_companion,
                       assignment=args.assignment,
                       progress=lambda line: print(line, file=sys.stderr))
+    if args.out:
+        plot_evaluation(result, args.out, campaign)  # the fold figures, as `crashfuse evaluate` draws them
     cpu = _cpu_seconds() - cpu0
     own, child = _peak_mib()
     n_folds = len(result.coverage)

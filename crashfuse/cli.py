@@ -43,7 +43,7 @@ def _pulse_metrics(args) -> int:
 
 
 def _iso_score(args) -> int:
-    from crashfuse.signals.iso18571 import score_files
+    from crashfuse.io.rating import score_files
 
     scores = score_files(args.test, args.prediction, args.start_ms, args.end_ms)
     if args.json:
@@ -153,6 +153,7 @@ def _evaluate(args) -> int:
     from crashfuse.evaluation.loto import evaluate
     from crashfuse.io.campaign import read_campaign
     from crashfuse.method.model import load_surrogate
+    from crashfuse.reporting.plots import plot_evaluation
 
     campaign = read_campaign(args.campaign)
     surrogate = load_surrogate(args.surrogate) if args.surrogate else None
@@ -163,6 +164,7 @@ def _evaluate(args) -> int:
                       holdout=args.holdout, use_companion=args.use_companion, assignment=args.assignment,
                       extra_inputs=args.extra_inputs, n_grid=args.n_grid, band=args.band, trend=args.trend,
                       pooled=args.pooled, onset=args.onset)
+    plot_evaluation(result, args.out, campaign)
     summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
     print(summary.mean().round(3).to_string())
     return 0
@@ -277,12 +279,36 @@ def _seed(text: str) -> int:
 def _build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="crashfuse", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    for add in (_add_pulse_metrics, _add_iso_score, _add_barrier_model, _add_world, _add_fit, _add_predict,
+                _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report, _add_plot, _add_track):
+        add(sub)
+    return p
 
+
+# --- one parser per subcommand (in the order of `crashfuse --help`) ------------------------------
+
+
+def _add_campaign(s) -> None:
+    s.add_argument("campaign", help="campaign folder")
+
+
+def _add_surrogate_option(s) -> None:
+    s.add_argument("--surrogate", default=None,
+                   help="CAE surrogate file (.cfmodel) from 'crashfuse prepare' (default: fit it)")
+
+
+def _add_iso_table(s) -> None:
+    s.add_argument("iso_table", help="iso_table.csv or the folder holding it")
+
+
+def _add_pulse_metrics(sub) -> None:
     s = sub.add_parser("pulse-metrics", help="pulse metrics of every run in a campaign, NHTSA EV5 or ISO-MME folder")
     s.add_argument("path", help="campaign folder, NHTSA EV5 test folder or ISO-MME test folder")
     s.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
     s.set_defaults(func=_pulse_metrics)
 
+
+def _add_iso_score(sub) -> None:
     s = sub.add_parser("iso-score", help="ISO/TS 18571 rating of a prediction against a test (pulse CSVs)")
     s.add_argument("test", help="reference pulse CSV (time_s, decel_g or decel_mps2)")
     s.add_argument("prediction", help="compared pulse CSV, same format")
@@ -291,6 +317,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print JSON")
     s.set_defaults(func=_iso_score)
 
+
+def _add_barrier_model(sub) -> None:
     s = sub.add_parser("barrier-model", help="single-mass model of a load-cell barrier test as its companion CAE run")
     s.add_argument("ev5_dir", metavar="EV5DIR", help="NHTSA EV5 test folder with barrier load cells")
     s.add_argument("--out", required=True, help="campaign folder to write (must not exist or be empty)")
@@ -299,8 +327,15 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print the model-vs-test comparison as JSON")
     s.set_defaults(func=_barrier_model)
 
+
+def _add_world(sub) -> None:
     w = sub.add_parser("world", help="the synthetic crash world (validation only)")
     wsub = w.add_subparsers(dest="world_command", required=True, parser_class=_Parser)
+    for add in (_add_world_generate, _add_world_calibrate, _add_world_realism, _add_world_validate):
+        add(wsub)
+
+
+def _add_world_generate(wsub) -> None:
     s = wsub.add_parser("generate", help="write a synthetic campaign folder and its world.json answer key")
     s.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     s.add_argument("--seed", type=_seed, default=0, help="seed of the CAE design and the test noise (default 0)")
@@ -311,15 +346,23 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--effect-param", action="append", default=[], metavar="NAME=VALUE",
                    help="set an effect parameter in SI, e.g. damping.c=2000 (repeatable)")
     s.set_defaults(func=_world_generate)
+
+
+def _add_world_calibrate(wsub) -> None:
     s = wsub.add_parser("calibrate", help="fit the test simulator to NHTSA 10146 and print the side-by-side table")
     s.add_argument("nhtsa", nargs="?", default=_DEFAULT_NHTSA, help="NHTSA EV5 folder of test 10146")
     s.add_argument("--check", action="store_true", help="only compare the committed defaults, no fit")
     s.add_argument("--max-evals", type=int, default=60, help="simulator evaluations for the fit (default 60)")
     s.set_defaults(func=_world_calibrate)
+
+
+def _add_world_realism(wsub) -> None:
     s = wsub.add_parser("realism", help="CAE-vs-test ISO 18571 and plausibility table of a generated campaign")
-    s.add_argument("campaign", help="campaign folder")
+    _add_campaign(s)
     s.set_defaults(func=_world_realism)
 
+
+def _add_world_validate(wsub) -> None:
     s = wsub.add_parser("validate", help="withheld-effect validation of the gap diagnosis (reads world.json)")
     s.add_argument("--effects", nargs="+", default=list(EFFECTS), metavar="EFFECT",
                    help="effects withheld one at a time (the control with none is always added)")
@@ -330,8 +373,10 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output folder for validation.csv and validation.md")
     s.set_defaults(func=_world_validate)
 
+
+def _add_fit(sub) -> None:
     s = sub.add_parser("fit", help="fit the CAE surrogate and the per-branch bias models; write a model file")
-    s.add_argument("campaign", help="campaign folder")
+    _add_campaign(s)
     s.add_argument("--k", type=_positive, required=True, help="mixture components K of the bias models")
     s.add_argument("--inputs", choices=("paper", "state"), default="paper",
                    help="bias inputs: paper [x, v0, w_f, w_r] or state [x, v, v0, w_f, w_r] (default paper)")
@@ -341,6 +386,8 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="model file to write (e.g. model.cfmodel)")
     s.set_defaults(func=_fit)
 
+
+def _add_predict(sub) -> None:
     s = sub.add_parser("predict", help="bias-corrected pulse with a 95 %% Monte Carlo band at one condition")
     s.add_argument("model", help="model file (.cfmodel) from 'crashfuse fit'")
     s.add_argument("--v0-mph", type=float, required=True, help="impact speed, mph")
@@ -355,8 +402,10 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_band_option(s)
     s.set_defaults(func=_predict)
 
+
+def _add_evaluate(sub) -> None:
     s = sub.add_parser("evaluate", help="leave-one-test-out ISO/TS 18571 table, predictions and band coverage")
-    s.add_argument("campaign", help="campaign folder")
+    _add_campaign(s)
     s.add_argument("--k", type=_positive, nargs="+", default=[1, 2, 3], help="mixture sizes (default 1 2 3)")
     s.add_argument("--inputs", choices=("paper", "state"), nargs="+", default=["paper", "state"],
                    help="input modes (default both)")
@@ -364,15 +413,16 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--jobs", type=_positive, default=2, help="worker processes (default 2)")
     s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
                    help="run only the fold holding out this test (repeatable; default every test)")
-    s.add_argument("--surrogate", default=None,
-                   help="CAE surrogate file (.cfmodel) from 'crashfuse prepare' (default: fit it)")
+    _add_surrogate_option(s)
     _add_method_options(s)
     _add_band_option(s)
     s.add_argument("--out", required=True, help="output folder")
     s.set_defaults(func=_evaluate)
 
+
+def _add_diagnose(sub) -> None:
     s = sub.add_parser("diagnose", help="sim-to-real gap: where it lies, which unmodelled effect, how far it shrinks")
-    s.add_argument("campaign", help="campaign folder")
+    _add_campaign(s)
     s.add_argument("--effects", nargs="+", default=list(EFFECTS), metavar="EFFECT",
                    help=f"candidate effects (default all: {' '.join(EFFECTS)})")
     s.add_argument("--threshold", type=float, default=0.10,
@@ -384,40 +434,49 @@ def _build_parser() -> argparse.ArgumentParser:
     s.add_argument("--samples", type=_positive, default=200, help="Monte Carlo samples per GMM-GPR fold (default 200)")
     s.add_argument("--inputs", choices=("paper", "state"), default="state",
                    help="bias inputs of the GMM-GPR rows (default state, the method's default)")
-    s.add_argument("--surrogate", default=None,
-                   help="CAE surrogate file (.cfmodel) from 'crashfuse prepare' (default: fit it)")
+    _add_surrogate_option(s)
     s.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
     s.add_argument("--in-sample", action="store_true", help="allow a single test (no hold-out; evidence in-sample)")
     s.add_argument("--no-residual", action="store_true", help="skip the GMM-GPR rows of the shrink table (faster)")
     s.add_argument("--out", required=True, help="output folder")
     s.set_defaults(func=_diagnose)
 
+
+def _add_prepare(sub) -> None:
     s = sub.add_parser("prepare", help="fit the CAE surrogate once on a campaign's CAE runs (shared by folds)")
-    s.add_argument("campaign", help="campaign folder")
+    _add_campaign(s)
     s.add_argument("--seed", type=_seed, default=0, help="seed of the surrogate's fit (default 0)")
     s.add_argument("--out", required=True, help="surrogate file to write (e.g. surrogate.cfmodel)")
     s.set_defaults(func=_prepare)
 
+
+def _add_aggregate(sub) -> None:
     s = sub.add_parser("aggregate", help="combine per-fold ISO tables into one iso_table.csv (CAE rows once)")
     s.add_argument("tables", nargs="+", help="per-fold iso_table.csv files")
     s.add_argument("--out", required=True, help="combined iso_table.csv")
     s.set_defaults(func=_aggregate)
 
+
+def _add_report(sub) -> None:
     s = sub.add_parser("report", help="the paper's Table 2 (Markdown, LaTeX) and the summary from iso_table.csv")
-    s.add_argument("iso_table", help="iso_table.csv or the folder holding it")
+    _add_iso_table(s)
     s.add_argument("--out", required=True, help="output folder")
     s.add_argument("--score", default="overall", help="score shown in Table 2 (default overall)")
     s.set_defaults(func=_report)
 
+
+def _add_plot(sub) -> None:
     s = sub.add_parser("plot", help="figures")
     psub = s.add_subparsers(dest="plot_command", required=True, parser_class=_Parser)
     s = psub.add_parser("summary", help="ISO score by test and K, per input mode")
-    s.add_argument("iso_table", help="iso_table.csv or the folder holding it")
+    _add_iso_table(s)
     s.add_argument("--window", default="0-60", help="window label, e.g. 0-60 (default)")
     s.add_argument("--score", default="overall", help="score to plot (default overall)")
     s.add_argument("--out", required=True, help="PNG file")
     s.set_defaults(func=_plot_summary)
 
+
+def _add_track(sub) -> None:
     s = sub.add_parser("track", help="log an evaluation to MLflow (idempotent: runs keyed by tags)")
     s.add_argument("results", help="results folder holding iso_table.csv and the fold JSON files")
     s.add_argument("--tracking-uri", default=None, help="MLflow tracking URI (default: MLFLOW_TRACKING_URI, "
@@ -427,7 +486,6 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="the fold JSON files to log (default: every *.fold.json below the results folder)")
     s.add_argument("--out", default=None, help="write the logged run ids as JSON here")
     s.set_defaults(func=_track)
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crashfuse.io.campaign import write_campaign
+from crashfuse.io.campaign_write import write_campaign
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
 

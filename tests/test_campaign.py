@@ -11,8 +11,12 @@ from hypothesis import strategies as st
 
 from crashfuse.signals import filters
 from crashfuse.errors import InputError
-from crashfuse.io import campaign as cmod
-from crashfuse.io.campaign import (Campaign, read_campaign, read_pulse_csv, write_campaign, write_pulse_csv)
+from crashfuse.io import campaign_write, pulse_csv
+from crashfuse.io.campaign import Campaign, read_campaign
+from crashfuse.io.campaign_write import write_campaign
+from crashfuse.io.conditions import CANONICAL
+from crashfuse.io.pulse_csv import read_pulse_csv, write_pulse_csv
+from crashfuse.io.tables import is_blank
 from crashfuse.io.nhtsa import read_nhtsa
 from crashfuse.io.loading import load_pulses
 from crashfuse.signals.pulse import Pulse
@@ -74,7 +78,7 @@ def test_units_are_converted_to_si_once(tmp_path):
     p = c.pulses["A"]
     assert p.decel[:50] == pytest.approx(np.full(50, 2 * G_N), rel=1e-15)
     assert (p.v0, p.front_weight, p.rear_weight) == (row["v0_mps"], row["front_weight_kg"], row["rear_weight_kg"])
-    assert list(c.conditions.columns) == list(cmod.CANONICAL)
+    assert list(c.conditions.columns) == list(CANONICAL)
 
 
 def test_kmh_kg_mps2_variants(tmp_path):
@@ -177,8 +181,8 @@ def folder_bytes(folder: Path) -> dict:
 
 
 def same_cell(a, b):
-    if cmod._blank(a) or cmod._blank(b):
-        return cmod._blank(a) and cmod._blank(b)
+    if is_blank(a) or is_blank(b):
+        return is_blank(a) and is_blank(b)
     if isinstance(a, str) or isinstance(b, str):
         return a == b
     return a == pytest.approx(b, rel=1e-9, abs=1e-300)
@@ -247,8 +251,8 @@ def test_write_failure_leaves_nothing_half_written(tmp_path, monkeypatch):
             raise OSError("disk full")
         return real(path, *args)
 
-    real = cmod._write_pulse
-    monkeypatch.setattr(cmod, "_write_pulse", failing)
+    real = campaign_write.write_pulse_file
+    monkeypatch.setattr(campaign_write, "write_pulse_file", failing)
     with pytest.raises(OSError):
         write_campaign(small_campaign(), tmp_path / "new")
     assert list(tmp_path.iterdir()) == []
@@ -519,7 +523,7 @@ def test_plain_and_general_pulse_readers_agree(tmp_path):
     plain.write_text(pulse_text(T, GOOD_G))
     rows = "".join(f'"x", "{float(x)!r}", {float(y)!r}\n' for x, y in zip(T, GOOD_G))
     fancy.write_text("note, time_s, decel_g\n" + rows)
-    assert cmod._plain_pulse_csv(plain) is not None and cmod._plain_pulse_csv(fancy) is None
+    assert pulse_csv.plain_pulse_csv(plain) is not None and pulse_csv.plain_pulse_csv(fancy) is None
     for got, want in zip(read_pulse_csv(plain), read_pulse_csv(fancy)):
         np.testing.assert_array_equal(got, want)
 
@@ -540,7 +544,7 @@ def test_pulses_parsed_together_equal_each_file_read_alone(tmp_path):
     rows = ["T1,test,33.5,2100,1700,ICE,FWD,C1"] + [f"{r},cae,33.5,2100,1700,ICE,FWD," for r in ("C1", "C2", "C3", "C4")]
     write_folder(tmp_path, rows, pulses=texts)
     files = {r: tmp_path / "pulses" / f"{r}.csv" for r in texts}
-    together = cmod._plain_pulse_files(files.values())
+    together = pulse_csv.plain_pulse_files(files.values())
     assert sorted(p.stem for p in together) == ["C1", "C2", "C3"]
     campaign = read_campaign(tmp_path)
     for run_id, path in files.items():

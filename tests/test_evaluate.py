@@ -12,10 +12,10 @@ import crashfuse.evaluation.loto as ev
 import crashfuse.method.model
 from crashfuse.cli import main
 from crashfuse.errors import InputError
-from crashfuse.io.campaign import write_campaign
+from crashfuse.io.campaign_write import write_campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.method.model import fit_model, load_model
-from crashfuse.reporting.tables import read_fold_json
+from crashfuse.evaluation.records import read_fold_json
 from crashfuse.method.rollout import predict
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.world.generate import build

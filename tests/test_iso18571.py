@@ -8,7 +8,8 @@ import pytest
 
 from crashfuse.cli import main
 from crashfuse.errors import InputError
-from crashfuse.signals.iso18571 import iso_score, iso_score_many, rate, score_files
+from crashfuse.io.rating import score_files
+from crashfuse.signals.iso18571 import iso_score, iso_score_many, rate
 
 KEYS = ("overall", "corridor", "phase", "magnitude", "slope")
 DT = 1e-4  # the standard's 10 kHz, written out here rather than imported

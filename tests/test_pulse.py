@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from crashfuse import InputError, Pulse
-from crashfuse.io.campaign import read_pulse_csv
+from crashfuse.io.pulse_csv import read_pulse_csv
 from crashfuse.signals.pulse import check_samples
 from crashfuse.units import G0
 

@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from crashfuse.evaluation import records
 from crashfuse.reporting import tables as report
 from crashfuse.cli import main
 from crashfuse.errors import InputError
@@ -128,7 +129,7 @@ def test_missing_and_garbled_tables(tmp_path):
     assert err.value.file == str(tmp_path / "iso_table.csv")
 
 
-def fold_record(**changes) -> report.FoldRecord:
+def fold_record(**changes) -> records.FoldRecord:
     fields = dict(
         test_id="T03", inputs="state", k=2, seed=11, campaign={"name": "paper", "hash": "0f" * 32},
         conditions={"v0_mps": 16.7 * 0.44704, "front_weight_kg": 2120.1 * 0.45359237,
@@ -138,13 +139,13 @@ def fold_record(**changes) -> report.FoldRecord:
         metrics={"coverage_95_0_60": 0.93, "log_marginal_likelihood_loading": -123.4},
         figures=["T03.png"], prediction="T03_prediction.csv")
     fields.update(changes)
-    return report.FoldRecord(**fields)
+    return records.FoldRecord(**fields)
 
 
 def test_fold_json_round_trip_and_metric_names(tmp_path):
     record = fold_record()
-    path = report.write_fold_json(tmp_path / "state" / "K2" / "T03.fold.json", record)
-    assert report.read_fold_json(path) == record
+    path = records.write_fold_json(tmp_path / "state" / "K2" / "T03.fold.json", record)
+    assert records.read_fold_json(path) == record
     doc = json.loads(path.read_text())
     assert doc["schema"] == "crashfuse.fold/1"
     names = record.iso_metrics()
@@ -172,7 +173,7 @@ def test_fold_json_round_trip_and_metric_names(tmp_path):
 def test_bad_fold_records_name_the_field(tmp_path, change, field):
     path = tmp_path / "x.fold.json"
     with pytest.raises(InputError) as err:
-        report.write_fold_json(path, fold_record(**change))
+        records.write_fold_json(path, fold_record(**change))
     assert err.value.field == field and err.value.file == str(path)
     assert not path.exists()
 
@@ -181,13 +182,13 @@ def test_read_fold_json_refuses_other_documents(tmp_path):
     path = tmp_path / "a.fold.json"
     path.write_text('{"schema": "something/2"}')
     with pytest.raises(InputError) as err:
-        report.read_fold_json(path)
+        records.read_fold_json(path)
     assert err.value.field == "schema"
     path.write_text("{not json")
     with pytest.raises(InputError, match="expected JSON"):
-        report.read_fold_json(path)
+        records.read_fold_json(path)
     with pytest.raises(ValueError, match="fold.json"):
-        report.write_fold_json(tmp_path / "a.json", fold_record())
+        records.write_fold_json(tmp_path / "a.json", fold_record())
 
 
 def _fold_table(path, test, k, cae=0.7, corrected=0.8):

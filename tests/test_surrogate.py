@@ -173,7 +173,7 @@ def test_the_surrogate_records_and_checks_its_campaign(world, fitted):
 
 def test_evaluate_refuses_a_surrogate_of_another_campaign(tmp_path, world, fitted, capsys):
     from crashfuse.cli import main
-    from crashfuse.io.campaign import write_campaign
+    from crashfuse.io.campaign_write import write_campaign
     from crashfuse.method.model import save_surrogate
 
     folder = write_campaign(world.subset([r for r in world.pulses if r != world.cae[-1]]), tmp_path / "campaign")

@@ -22,7 +22,7 @@ from mlflow.tracking import MlflowClient  # noqa: E402
 
 from crashfuse.reporting import tracking  # noqa: E402
 from crashfuse.errors import InputError  # noqa: E402
-from crashfuse.reporting.tables import FoldRecord, write_fold_json  # noqa: E402
+from crashfuse.evaluation.records import FoldRecord, write_fold_json  # noqa: E402
 
 SCORES = ["overall", "corridor", "phase", "magnitude", "slope"]
 WINDOWS = ["0-20", "0-40", "0-60"]

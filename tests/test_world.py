@@ -194,12 +194,12 @@ def test_world_json_is_the_answer_key(paper):
 
 
 def test_campaign_takes_its_final_name_with_world_json_or_not_at_all(tmp_path, monkeypatch):
-    from crashfuse.io import campaign as cmod
+    from crashfuse.io import campaign_write
     from crashfuse.world import generate as gmod
 
-    seen, swap = [], cmod._swap_in
-    monkeypatch.setattr(cmod, "_swap_in", lambda tmp, folder: (seen.append(sorted(os.listdir(tmp))),
-                                                               swap(tmp, folder)))
+    seen, swap = [], campaign_write._swap_in
+    monkeypatch.setattr(campaign_write, "_swap_in", lambda tmp, folder: (seen.append(sorted(os.listdir(tmp))),
+                                                                         swap(tmp, folder)))
     generate(tmp_path / "ok", resolve(), seed=3, n_cae=2)
     assert seen == [["conditions.csv", "pulses", "world.json"]]
     campaign, _ = build(resolve(), seed=3, n_cae=2)

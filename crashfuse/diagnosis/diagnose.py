@@ -39,7 +39,7 @@ from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import Campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.signals.pulse import Pulse
-from crashfuse.reporting.tables import SCORES, WINDOWS, window_bounds
+from crashfuse.evaluation.iso_table import SCORES, WINDOWS, window_bounds
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MPH, MS
 

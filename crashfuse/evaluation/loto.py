@@ -28,14 +28,13 @@ import pandas as pd
 from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
+from crashfuse.evaluation.iso_table import BASELINE, COLUMNS, SCORES, WINDOWS, model_label, window_bounds
+from crashfuse.evaluation.records import FoldRecord, fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.method.model import fit_model
-from crashfuse.reporting.plots import fold_figure, save_png
 from crashfuse.method.projection import BRANCHES, INPUTS
-from crashfuse.reporting.tables import (BASELINE, COLUMNS, SCORES, WINDOWS, FoldRecord, model_label, window_bounds,
-                              write_fold_json)
 from crashfuse.method.rollout import predict
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MS
@@ -52,7 +51,7 @@ class Evaluation:
     Attributes
     ----------
     iso_table : DataFrame
-        Columns :data:`crashfuse.reporting.tables.COLUMNS`; one row per test, input mode, model (CAE, K1, ...) and window.
+        Columns :data:`crashfuse.evaluation.iso_table.COLUMNS`; one row per test, input mode, model (CAE, K1, ...) and window.
     coverage : DataFrame
         Columns ``COVERAGE_COLUMNS``: per fold, the fraction of held-out test points in 0-60 ms inside
         the reported 95 % band (``coverage``) and inside the latent band (``coverage_latent``), the
@@ -62,7 +61,7 @@ class Evaluation:
         Per fold ``(inputs, model, test_id)``: the prediction table (:meth:`Prediction.frame`) with
         the held-out test's deceleration (``test_decel_g``) beside it.
     records : dict of (str, str, str) to FoldRecord
-        Per fold, its tracking record (``crashfuse.reporting.tables``, docs/tracking.md).
+        Per fold, its tracking record (:mod:`crashfuse.evaluation.records`, docs/tracking.md).
     wall_time : float
         Seconds for the whole evaluation.
     """
@@ -89,7 +88,8 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     inputs : sequence of {"paper", "state"}
     out : path, optional
         Folder for ``iso_table.csv``, ``coverage.csv`` and, per fold, ``<inputs>/K<k>/<test>/`` with
-        ``<test>_prediction.csv`` and ``<test>.fold.json`` (docs/tracking.md); each file atomic.
+        ``<test>_prediction.csv`` and ``<test>.fold.json`` (docs/tracking.md); each file atomic. The
+        fold figures the fold JSON names are drawn by :func:`crashfuse.reporting.plots.plot_evaluation`.
     n_samples : int
         Monte Carlo samples per prediction.
     random_state : int
@@ -137,7 +137,7 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     records = {key: r["record"] for key, r in zip(keys, results)}
     result = Evaluation(iso, coverage, predictions, records, time.perf_counter() - t0)
     if out is not None:
-        write_evaluation(result, out, campaign)
+        write_evaluation(result, out)
     say(f"evaluate: done in {result.wall_time:.1f} s")
     return result
 
@@ -319,13 +319,13 @@ def _cae_rows(campaign, surrogate, test_id, mode) -> list[dict]:
     return [_iso_row(test, t, a, test_id, mode, BASELINE, w) for w in WINDOWS]
 
 
-def write_evaluation(result: Evaluation, out: str | os.PathLike, campaign: Campaign) -> Path:
-    """Write the evaluation into ``out``, each file atomically.
+def write_evaluation(result: Evaluation, out: str | os.PathLike) -> Path:
+    """Write the evaluation's tables and fold files into ``out``, each file atomically.
 
     ``iso_table.csv``, ``coverage.csv``, and per fold ``<inputs>/K<k>/<test>/`` with
-    ``<test>_prediction.csv``, ``<test>.png`` (test vs CAE vs corrected mean and band) and
-    ``<test>.fold.json``. Fold files come first, the tables last: a complete ``iso_table.csv``
-    means a complete evaluation.
+    ``<test>_prediction.csv`` and ``<test>.fold.json``. Fold files come first, the tables last:
+    a complete ``iso_table.csv`` means complete data. The fold figures (``<test>.png``) are the
+    reporting layer's: :func:`crashfuse.reporting.plots.plot_evaluation`.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -333,18 +333,10 @@ def write_evaluation(result: Evaluation, out: str | os.PathLike, campaign: Campa
     for key, frame in result.predictions.items():
         folder = fold_folder(out, *key)
         _write_csv(frame, folder / f"{key[2]}_prediction.csv")
-        test = campaign.pulses[key[2]].after_contact()
-        title = f"{key[2]}: {key[0]} inputs, K = {key[1][1:]}"
-        save_png(fold_figure(test, frame, title), folder / f"{key[2]}.png")
         write_fold_json(folder / f"{key[2]}.fold.json", result.records[key])
     _write_csv(result.coverage, out / "coverage.csv")
     _write_csv(result.iso_table, out / "iso_table.csv")
     return out
-
-
-def fold_folder(out: str | os.PathLike, inputs: str, model: str, test_id: str) -> Path:
-    """``out/<inputs>/<model>/<test_id>``: where one fold's files go."""
-    return Path(out) / inputs / model / test_id
 
 
 def _write_csv(frame: pd.DataFrame, path: Path) -> None:

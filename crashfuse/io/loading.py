@@ -6,7 +6,9 @@ import os
 from pathlib import Path
 
 from crashfuse.errors import InputError
-from crashfuse.io.campaign import CONDITIONS, DEFAULT_CFC, prepare_pulse, read_campaign, read_test_folder
+from crashfuse.io.campaign import read_campaign, read_test_folder
+from crashfuse.io.checks import prepare_pulse
+from crashfuse.io.conditions import CONDITIONS, DEFAULT_CFC
 from crashfuse.signals.pulse import Pulse
 
 EXPECTED = (f"expected a campaign folder ({CONDITIONS} + pulses/), an NHTSA EV5 test folder (*.EV5) "

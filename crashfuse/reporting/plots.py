@@ -22,11 +22,12 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from crashfuse.errors import InputError
+from crashfuse.evaluation.iso_table import BASELINE, SCORES, model_order, window_bounds
+from crashfuse.evaluation.records import fold_folder
 from crashfuse.io.tables import read_table
 from crashfuse.io.atomic import atomic_path
 from crashfuse.signals.pulse import Pulse
-from crashfuse.reporting.tables import (BASELINE, INPUTS, SCORES, model_order, natural_key, read_iso_table, table2, table_file,
-                              window_bounds)
+from crashfuse.reporting.tables import INPUTS, natural_key, read_iso_table, table2, table_file
 from crashfuse.units import G0, MM, MPH, MS
 
 PREDICTION_COLUMNS = ("time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g")
@@ -218,6 +219,31 @@ def plot_fold(test: Pulse, prediction_csv: str | os.PathLike, path: str | os.Pat
               title: str | None = None) -> Path:
     """Read a prediction CSV and write its `fold_figure` as a PNG at ``path``."""
     return save_png(fold_figure(test, read_prediction_csv(prediction_csv), title), path)
+
+
+def plot_evaluation(result, out: str | os.PathLike, campaign) -> list[Path]:
+    """Write every fold's `fold_figure` to ``<out>/<inputs>/K<k>/<test>/<test>.png``, beside its prediction CSV.
+
+    Parameters
+    ----------
+    result : crashfuse.evaluation.loto.Evaluation
+        The evaluation whose in-memory prediction tables are drawn.
+    out : str or PathLike
+        The evaluation folder (as given to :func:`crashfuse.evaluation.loto.evaluate`).
+    campaign : crashfuse.io.campaign.Campaign
+        The evaluated campaign: the held-out tests are drawn from first contact on.
+
+    Returns
+    -------
+    list of Path
+        The figures written, one per fold.
+    """
+    paths = []
+    for (inputs, model, test_id), frame in result.predictions.items():
+        test = campaign.pulses[test_id].after_contact()
+        path = fold_folder(out, inputs, model, test_id) / f"{test_id}.png"
+        paths.append(save_png(fold_figure(test, frame, f"{test_id}: {inputs} inputs, K = {model[1:]}"), path))
+    return paths
 
 
 def plot_panels(test: Pulse, prediction_csvs: Mapping[str, str | os.PathLike], path: str | os.PathLike,

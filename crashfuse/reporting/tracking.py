@@ -28,8 +28,9 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from crashfuse.errors import InputError
-from crashfuse.reporting.tables import (BASELINE, CONDITIONS, FOLD_SUFFIX, ISO_TABLE, SCORES, FoldRecord, read_fold_json,
-                              read_iso_table, window_key)
+from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, window_key
+from crashfuse.evaluation.records import CONDITIONS, FOLD_SUFFIX, FoldRecord, read_fold_json
+from crashfuse.reporting.tables import read_iso_table
 
 DEFAULT_DB = "mlflow.db"
 ARTIFACTS = "mlartifacts"

@@ -34,7 +34,9 @@ from crashfuse.signals.domain import displacement_branches
 from crashfuse.signals.dynamics import State, Trajectory, rollout
 from crashfuse.errors import InputError
 from crashfuse.signals.filters import cfc_filter
-from crashfuse.io.campaign import Campaign, prepare_pulse, write_campaign
+from crashfuse.io.campaign import Campaign
+from crashfuse.io.campaign_write import write_campaign
+from crashfuse.io.checks import prepare_pulse
 from crashfuse.io.nhtsa import read_barrier_force, read_header, read_nhtsa
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.signals.metrics import pulse_metrics

@@ -17,7 +17,8 @@ import numpy as np
 import pandas as pd
 
 from crashfuse.errors import InputError
-from crashfuse.io.campaign import Campaign, write_campaign
+from crashfuse.io.campaign import Campaign
+from crashfuse.io.campaign_write import write_campaign
 from crashfuse.signals.pulse import Pulse
 from crashfuse.world import WORLD_VERSION
 from crashfuse.world.presets import N_CAE, Design, cae_design, table1_tests
@@ -112,7 +113,7 @@ def generate(out: str | os.PathLike, design: Design, seed: int = 0, n_cae: int =
     """Write the campaign folder ``out`` (mph, lb, g) with ``world.json`` beside conditions.csv.
 
     The folder, ``world.json`` included, is written atomically by
-    :func:`crashfuse.io.campaign.write_campaign` (which refuses a non-empty folder): a campaign never
+    :func:`crashfuse.io.campaign_write.write_campaign` (which refuses a non-empty folder): a campaign never
     appears without its answer key.
     """
     campaign, world = build(design, seed, n_cae)

@@ -1,0 +1,64 @@
+"""The ISO score table an evaluation writes (``iso_table.csv``): its columns and row labels.
+
+One row per held-out test x input mode x model x window: the keys ``test_id, inputs, model,
+window_ms``, then the five ISO/TS 18571 scores. ``model`` is ``CAE`` (the baseline: the test's
+companion CAE run) or ``K<n>`` (the bias model with n clusters); ``window_ms`` is ``<start>-<end>``
+in whole ms. :mod:`crashfuse.reporting.tables` reads and tabulates it.
+"""
+
+from __future__ import annotations
+
+import re
+
+ISO_TABLE = "iso_table.csv"
+KEYS = ("test_id", "inputs", "model", "window_ms")
+SCORES = ("overall", "corridor", "phase", "magnitude", "slope")
+COLUMNS = (*KEYS, *SCORES)
+BASELINE = "CAE"
+WINDOWS = ("0-20", "0-40", "0-60")
+_MODEL = re.compile(r"K([1-9][0-9]*)")
+_WINDOW = re.compile(r"([0-9]+)-([0-9]+)")
+
+
+def model_label(k: int) -> str:
+    """The ``model`` label of the bias model with ``k`` clusters (``K1``, ``K2`` ...)."""
+    return f"K{int(k)}"
+
+
+def window_bounds(label: str) -> tuple[int, int]:
+    """Start and end in ms of a ``window_ms`` label such as ``'0-60'``.
+
+    Raises
+    ------
+    ValueError
+        If the label is not ``<start>-<end>`` with integer milliseconds and start < end.
+    """
+    m = _WINDOW.fullmatch(str(label))
+    if not m or int(m[1]) >= int(m[2]):
+        raise ValueError(f"expected a window '<start>-<end>' in whole ms with start < end, got {label!r}")
+    return int(m[1]), int(m[2])
+
+
+def window_key(label: str) -> str:
+    """The metric-name form of a window label: ``'0-60'`` -> ``'0_60'``."""
+    start, end = window_bounds(label)
+    return f"{start}_{end}"
+
+
+def model_order(model: str) -> tuple[int, int]:
+    """Sort key of a ``model`` label: CAE first, then K ascending."""
+    return (0, 0) if model == BASELINE else (1, int(_MODEL.fullmatch(model)[1]))
+
+
+def is_model_label(label: str) -> bool:
+    """Whether ``label`` is a ``model`` label: ``CAE`` or ``K<n>`` with n >= 1."""
+    return label == BASELINE or _MODEL.fullmatch(label) is not None
+
+
+def is_window(label: str) -> bool:
+    """Whether ``label`` is a ``window_ms`` label (see :func:`window_bounds`)."""
+    try:
+        window_bounds(label)
+    except ValueError:
+        return False
+    return True
