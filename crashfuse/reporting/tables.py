@@ -23,12 +23,12 @@ import pandas as pd
 from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.tables import read_table
+from crashfuse.method.projection import INPUTS
 
 ISO_TABLE = "iso_table.csv"
 KEYS = ("test_id", "inputs", "model", "window_ms")
 SCORES = ("overall", "corridor", "phase", "magnitude", "slope")
 COLUMNS = (*KEYS, *SCORES)
-INPUTS = ("paper", "state")
 BASELINE = "CAE"
 WINDOWS = ("0-20", "0-40", "0-60")
 FOLD_SCHEMA = "crashfuse.fold/1"
@@ -177,7 +177,7 @@ def table2(frame: pd.DataFrame, inputs: str, score: str = "overall") -> pd.DataF
         the windows in order of start then end. A missing cell is NaN.
     """
     if score not in SCORES:
-        raise InputError(f"expected a score in {SCORES}, got {score!r}", table_file(frame), "--score")
+        raise InputError(f"expected a score in {SCORES}, got {score!r}", table_file(frame), "score")
     rows = frame[frame["inputs"] == inputs]
     if rows.empty:
         raise InputError(f"expected rows with inputs {inputs!r}, found none", table_file(frame), "inputs")
