@@ -19,11 +19,12 @@ import psutil
 
 from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.campaign import read_campaign
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import fit_model
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.reporting.plots import plot_evaluation
 
-DEFAULT_K = 1  # the timed single fold (model.choose_k picks K1 for paper, K3 for state: docs/method-rollout.md)
+DEFAULT_K = 1  # the timed single fold (kchoice.choose_k picks K1 for paper, K3 for state: docs/method-rollout.md)
 
 
 def _campaign(folder):
@@ -90,7 +91,7 @@ def main(argv=None) -> int:
     t1 = time.perf_counter()
     surrogate = CAESurrogate(random_state=0).fit(campaign)
     t2 = time.perf_counter()
-    fit_model(campaign, DEFAULT_K, inputs="state", holdout=campaign.tests[0], surrogate=surrogate)
+    fit_model(campaign, MethodConfig(k=DEFAULT_K, inputs="state"), holdout=campaign.tests[0], surrogate=surrogate)
     t3 = time.perf_counter()
     print(f"campaign: {len(campaign.tests)} tests, {len(campaign.cae)} CAE runs ({t1 - t0:.1f} s)")
     print(f"surrogate fit (once, shared by all folds): {t2 - t1:.1f} s; one fold fit (K={DEFAULT_K}, state): "

@@ -18,6 +18,7 @@ import numpy as np
 
 from crashfuse.signals.dynamics import rollout
 from crashfuse.io.campaign import read_campaign
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import fit_model
 from crashfuse.method.rollout import _BranchBias, _decel_fn, _prepare, predict
 
@@ -49,7 +50,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     campaign = _campaign(args.campaign)
     test = campaign.pulses["T05"]
-    model = fit_model(campaign, args.k, inputs=args.inputs, holdout="T05")
+    model = fit_model(campaign, MethodConfig(k=args.k, inputs=args.inputs), holdout="T05")
     cond = model.condition(test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
                            test.meta.get("drive"))
     dt, n_steps = test.dt, test.time.size - 1

@@ -40,6 +40,7 @@ figure is measured in this run; ``--json`` prints them as JSON instead of the ta
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import resource
@@ -53,7 +54,8 @@ from joblib import Parallel, delayed
 from crashfuse.method.mixture import GMMGPBias
 from crashfuse.io.campaign import read_campaign
 from crashfuse.signals.iso18571 import iso_score
-from crashfuse.method.model import fit_model
+from crashfuse.method.config import MethodConfig
+from crashfuse.method.model import fit_model, training_data
 from crashfuse.method.projection import BRANCHES, bias_data
 from crashfuse.method.rollout import predict
 from crashfuse.method.surrogate import CAESurrogate
@@ -132,8 +134,8 @@ def fold_fits(campaign, surrogate, k, holdout, n_grid, inputs="state", full_cap=
         Peak traced allocation of the fit (MiB).
     """
     def fit(n, **extra):
-        return _traced(functools.partial(fit_model, campaign, k, inputs=inputs, holdout=holdout, n_grid=n,
-                                         random_state=seed, surrogate=surrogate, **{**bias_params, **extra}))
+        config = MethodConfig(k=k, inputs=inputs, n_grid=n, random_state=seed, **{**bias_params, **extra})
+        return _traced(functools.partial(fit_model, campaign, config, holdout=holdout, surrogate=surrogate))
 
     if n_grid is not None:
         yield (n_grid, *fit(n_grid))
@@ -182,9 +184,7 @@ def _rms(a) -> float:
 
 def _projection(campaign, surrogate, tests, model, n_grid):
     """Bias data of ``tests`` as ``model`` learnt them (inputs, target, weights), thinned to ``n_grid``."""
-    s = model.settings
-    return bias_data(campaign, tests, s["inputs"], s["extra_inputs"], n_grid, surrogate=surrogate,
-                     target=s["target"], weights=s["weights"], velocity=s["velocity"])
+    return training_data(campaign, tests, dataclasses.replace(model.config, n_grid=n_grid), surrogate)
 
 
 def fold_errors(campaign, surrogate, test_id, model, n_grid) -> dict:

@@ -101,14 +101,20 @@ def _world_validate(args) -> int:
     return 0
 
 
+def _method_settings(args) -> dict:
+    """The MethodConfig settings of ``_add_method_options`` (None: the input mode's default)."""
+    return dict(assignment=args.assignment, extra_inputs=args.extra_inputs, n_grid=args.n_grid,
+                use_companion=args.use_companion, trend=args.trend, pooled=args.pooled, onset=args.onset)
+
+
 def _fit(args) -> int:
     from crashfuse.io.campaign import read_campaign
+    from crashfuse.method.config import MethodConfig
     from crashfuse.method.model import fit_model
 
+    config = MethodConfig(k=args.k, inputs=args.inputs, random_state=args.seed, **_method_settings(args))
     campaign = read_campaign(args.campaign)
-    model = fit_model(campaign, args.k, inputs=args.inputs, holdout=args.holdout, assignment=args.assignment,
-                      extra_inputs=args.extra_inputs, n_grid=args.n_grid, use_companion=args.use_companion,
-                      random_state=args.seed, trend=args.trend, pooled=args.pooled, onset=args.onset)
+    model = fit_model(campaign, config, holdout=args.holdout)
     model.save(args.out)
     gps = {b: 0 if est is None else len(est.gps_) for b, est in model.bias_.items()}
     print(f"wrote {args.out}: K={args.k} {args.inputs} inputs, {len(model.training_tests)} training tests, "
@@ -133,7 +139,8 @@ def _predict(args) -> int:
               file=sys.stderr)
     if args.json:
         _print_json({"metrics": pred.metrics, "extrapolation": pred.extrapolation, "n_samples": pred.n_samples,
-                     "campaign_hash": model.campaign_hash, "settings": model.settings})
+                     "campaign_hash": model.campaign_hash,
+                     "settings": {**model.config.as_dict(), "holdout": model.holdout}})
     return 0
 
 
@@ -161,9 +168,7 @@ def _evaluate(args) -> int:
         surrogate.check_campaign(campaign, args.surrogate)
     result = evaluate(campaign, ks=args.k, inputs=args.inputs, out=args.out,
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
-                      holdout=args.holdout, use_companion=args.use_companion, assignment=args.assignment,
-                      extra_inputs=args.extra_inputs, n_grid=args.n_grid, band=args.band, trend=args.trend,
-                      pooled=args.pooled, onset=args.onset)
+                      holdout=args.holdout, band=args.band, **_method_settings(args))
     plot_evaluation(result, args.out, campaign)
     summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
     print(summary.mean().round(3).to_string())
@@ -488,12 +493,41 @@ def _add_track(sub) -> None:
     s.set_defaults(func=_track)
 
 
+# The flag of each setting that a command's InputError may name: the library names the setting
+# (its parameter or MethodConfig field), the command line the flag it came from.
+_METHOD_FLAGS = {"k": "--k", "inputs": "--inputs", "holdout": "--holdout", "random_state": "--seed",
+                 "assignment": "--assignment", "use_companion": "--use-companion", "extra_inputs": "--extra-inputs",
+                 "n_grid": "--n-grid", "trend": "--trend", "pooled": "--pooled", "onset": "--onset"}
+_FLAGS = {
+    "fit": _METHOD_FLAGS,
+    "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out"},
+    "predict": {"n_samples": "--samples", "random_state": "--seed", "band": "--band"},
+    "diagnose": {"effects": "--effects", "threshold": "--threshold", "min_wins": "--min-wins", "k": "--k",
+                 "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed"},
+    "report": {"score": "--score"},
+    "plot summary": {"score": "--score", "window": "--window"},
+    "world generate": {"preset": "--preset", "withhold": "--withhold", "strength": "--strength",
+                       "overrides": "--effect-param", "seed": "--seed"},
+    "world calibrate": {"max_nfev": "--max-evals"},
+    "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds"},
+}
+
+
+def _named_by_flag(err: InputError, args) -> InputError:
+    """``err`` with its field renamed to the flag it came from, for the command in ``args``."""
+    command = " ".join(filter(None, (getattr(args, name, None)
+                                     for name in ("command", "world_command", "plot_command"))))
+    flag = _FLAGS.get(command, {}).get(err.field)
+    return err if flag is None else InputError(err.message, err.file, flag)
+
+
 def main(argv: list[str] | None = None) -> int:
+    args = None
     try:
         args = _build_parser().parse_args(argv)
         return args.func(args)
     except InputError as err:
-        print(f"crashfuse: error: {err}", file=sys.stderr)
+        print(f"crashfuse: error: {_named_by_flag(err, args)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -14,6 +14,7 @@ from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.io.campaign_write import write_campaign
 from crashfuse.signals.iso18571 import iso_score
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import fit_model, load_model
 from crashfuse.evaluation.records import read_fold_json
 from crashfuse.method.rollout import predict
@@ -71,7 +72,7 @@ def test_fit_with_a_holdout_reproduces_the_evaluate_fold(campaign, monkeypatch):
     monkeypatch.setattr(crashfuse.method.model, "CAESurrogate", restarting)
     fold = ev.evaluate(campaign, ks=[1], inputs=["paper"], holdout="T05", n_samples=5, random_state=3, n_jobs=1,
                        progress=None, **FAST)
-    model = fit_model(campaign, 1, inputs="paper", holdout="T05", random_state=3, **FAST)
+    model = fit_model(campaign, MethodConfig(k=1, inputs="paper", random_state=3, **FAST), holdout="T05")
     test = campaign.pulses["T05"].after_contact()
     pred = predict(model, test.v0, test.front_weight, test.rear_weight, test.meta["powertrain"],
                    test.meta["drive"], n_samples=5, random_state=3, duration=float(test.time[-1]), dt=test.dt)
@@ -151,7 +152,8 @@ def test_band_coverage_closed_form():
     assert n == 61 and cov == pytest.approx(30 / 61)
 
 
-@pytest.mark.parametrize("kw, field", [(dict(ks=[0]), "--k"), (dict(inputs=["both"]), "--inputs")])
+@pytest.mark.parametrize("kw, field", [(dict(ks=[0]), "k"), (dict(inputs=["both"]), "inputs"),
+                                       (dict(trend="cubic"), "trend"), (dict(random_state=-1), "random_state")])
 def test_bad_settings(campaign, surrogate, kw, field):
     with pytest.raises(InputError) as err:
         ev.evaluate(campaign, surrogate=surrogate, progress=None, **kw)
@@ -185,10 +187,10 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     model = tmp_path / "model.cfmodel"
     assert main(["fit", str(folder), "--k", "2", "--inputs", "paper", "--pooled", "--n-grid", "40",
                  "--out", str(model)]) == 0
-    assert load_model(model).settings["pooled"] is True  # paper's default is False
+    assert load_model(model).config.pooled is True  # paper's default is False
     assert main(["fit", str(folder), "--k", "1", "--inputs", "state", "--no-onset", "--n-grid", "40",
                  "--out", str(model)]) == 0
-    assert load_model(model).settings["onset"] is False  # state's default is True
+    assert load_model(model).config.onset is False  # state's default is True
     assert main(["fit", str(folder), "--k", "1", "--inputs", "paper", "--onset", "--out", str(model)]) == 2
     assert main(["evaluate", str(folder), "--k", "0", "--out", str(tmp_path / "x")]) == 2
     assert main(["evaluate", str(folder), "--k", "1", "--holdout", "C0001", "--out", str(tmp_path / "x")]) == 2
@@ -204,8 +206,8 @@ def test_workers_read_the_campaign_once_from_a_pickle_they_remove(campaign, surr
     from joblib import Parallel, delayed
 
     monkeypatch.setattr(ev.tempfile, "tempdir", str(tmp_path))
-    folds = [("paper", 1, "T02"), ("state", 1, "T08")]
-    settings = (5, 0, "test", FAST)
+    folds = [(MethodConfig(k=1, inputs="paper", **FAST), "T02"), (MethodConfig(k=1, inputs="state", **FAST), "T08")]
+    settings = (5, "test")
     shared = list(ev._run_folds(campaign, surrogate, folds, 2, settings))
     assert not list(tmp_path.iterdir())
     direct = Parallel(n_jobs=2)(delayed(ev._fold)(campaign, surrogate, *fold, *settings) for fold in folds)

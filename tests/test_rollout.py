@@ -15,6 +15,7 @@ from crashfuse.method.onset import OnsetCorrectedBias
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.signals.iso18571 import iso_score
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import Condition, fit_model, load_model
 from crashfuse.method.projection import cae_curve
 import crashfuse.method.rollout as rollout_module
@@ -42,7 +43,7 @@ def surrogate(campaign):
 
 @pytest.fixture(scope="module")
 def model(campaign, surrogate):
-    return fit_model(campaign, 1, inputs="paper", surrogate=surrogate, **FAST)
+    return fit_model(campaign, MethodConfig(k=1, inputs="paper", **FAST), surrogate=surrogate)
 
 
 def _at(model, pulse, **kw):
@@ -53,7 +54,7 @@ def _at(model, pulse, **kw):
 @pytest.mark.parametrize("test_id", ["T01", "T06", "T08"])
 def test_zero_bias_reproduces_the_companion_cae_pulse(campaign, model, test_id):
     zero = dataclasses.replace(model, bias_={"loading": None, "unloading": None},
-                               settings={**model.settings, "use_companion": True})
+                               config=dataclasses.replace(model.config, use_companion=True))
     test, cae = campaign.pulses[test_id], campaign.companion(test_id)
     pred = _at(zero, test, n_samples=3, random_state=0)
     # Same integrator and the run's own loading branch: exact until the car stops. After it, the
@@ -70,8 +71,8 @@ def test_zero_bias_reproduces_the_companion_cae_pulse(campaign, model, test_id):
 def test_true_bias_reproduces_the_test(campaign, surrogate):
     # Trained on T04 alone, its own bias is interpolated: the rollout must give T04 back.
     others = [t for t in campaign.tests if t != "T04"]
-    m = fit_model(campaign, 1, inputs="paper", holdout=others, surrogate=surrogate, use_companion=True,
-                  n_grid=300)
+    m = fit_model(campaign, MethodConfig(k=1, inputs="paper", use_companion=True, n_grid=300), holdout=others,
+                  surrogate=surrogate)
     test = campaign.pulses["T04"]
     pred = _at(m, test, n_samples=200, random_state=1)
     cae = campaign.companion("T04")
@@ -108,7 +109,7 @@ class KnownGP:
 def test_band_width_matches_a_known_gp(campaign, model):
     sigma = 2.0 * G
     known = dataclasses.replace(model, bias_={"loading": KnownGP(sigma, 0.05), "unloading": None},
-                                settings={**model.settings, "use_companion": True})
+                                config=dataclasses.replace(model.config, use_companion=True))
     pred = _at(known, campaign.pulses["T08"], n_samples=4000, random_state=3)
     # Early on every sample sits at (almost) the same s, so the band is the GP's pointwise 95 % interval.
     early = (pred.time >= 0.001) & (pred.time <= 0.005)
@@ -120,7 +121,7 @@ def test_band_width_matches_a_known_gp(campaign, model):
 def test_test_band_adds_the_scatter_in_quadrature_and_leaves_the_rest(campaign, model):
     sigma, scatter = 2.0 * G, 1.5 * G
     known = dataclasses.replace(model, bias_={"loading": KnownGP(sigma, 0.05, scatter), "unloading": None},
-                                settings={**model.settings, "use_companion": True})
+                                config=dataclasses.replace(model.config, use_companion=True))
     test, latent = (_at(known, campaign.pulses["T08"], n_samples=4000, random_state=3, band=b)
                     for b in ("test", "latent"))
     for name in ("decel", "decel_latent_lo", "decel_latent_hi", "velocity_lo", "displacement_hi",
@@ -145,7 +146,7 @@ def test_test_band_adds_the_scatter_in_quadrature_and_leaves_the_rest(campaign, 
 def test_relative_scatter_scales_with_the_floored_cae_decel(campaign, model):
     from crashfuse.method.projection import bias_scale
     rel = dataclasses.replace(model, bias_={"loading": KnownGP(1e-3, 0.05, 0.1), "unloading": None},
-                              settings={**model.settings, "target": "relative"})
+                              config=dataclasses.replace(model.config, target="relative"))
     pred = _at(rel, campaign.pulses["T06"], n_samples=5, random_state=0)
     on = pred.mean_path.branch[0] == Trajectory.LOADING
     s = pred.mean_path.s[0, on]
@@ -221,7 +222,7 @@ def test_unloading_grid_ignores_free_flight_after_separation(campaign, model, mo
 
 
 def test_state_inputs_predict(campaign, surrogate):
-    m = fit_model(campaign, 2, inputs="state", holdout="T07", surrogate=surrogate, **FAST)
+    m = fit_model(campaign, MethodConfig(k=2, inputs="state", **FAST), holdout="T07", surrogate=surrogate)
     assert m.columns["loading"][:2] == ("x_m", "v_sqrt")
     assert "T07" not in m.groups["loading"] + m.groups["unloading"]
     pred = _at(m, campaign.pulses["T07"], n_samples=100, random_state=0)
@@ -247,30 +248,34 @@ def test_bad_prediction_input(campaign, model, kw, field):
 def test_fit_errors(campaign, surrogate):
     cae_only = campaign.subset(campaign.cae)
     with pytest.raises(InputError, match="no training test"):
-        fit_model(cae_only, 1, surrogate=surrogate)
+        fit_model(cae_only, MethodConfig(k=1), surrogate=surrogate)
     tests_only = campaign.subset([])
     with pytest.raises(InputError, match="no CAE runs"):
-        fit_model(tests_only, 1, surrogate=surrogate)
+        fit_model(tests_only, MethodConfig(k=1), surrogate=surrogate)
     with pytest.raises(InputError) as err:
-        fit_model(campaign, 1, holdout="C0001", surrogate=surrogate)
-    assert err.value.field == "--holdout"
+        fit_model(campaign, MethodConfig(k=1), holdout="C0001", surrogate=surrogate)
+    assert err.value.field == "holdout"
     with pytest.raises(InputError) as err:  # one test, 5 points per branch: fewer than the GP's parameters
-        fit_model(campaign, 3, holdout=campaign.tests[1:], surrogate=surrogate, n_grid=5)
-    assert err.value.field == "--k"
+        fit_model(campaign, MethodConfig(k=3, n_grid=5), holdout=campaign.tests[1:], surrogate=surrogate)
+    assert err.value.field == "k"
 
 
-def test_fit_reports_only_too_few_points_as_bad_k(campaign, surrogate):
-    # A fault that is not about K (here a bad GP setting, caught inside KrigingGP) must surface as
-    # itself, not as an input error on --k.
-    with pytest.raises(ValueError, match="trend must be one of") as err:
-        fit_model(campaign, 1, surrogate=surrogate, trend="cubic", **FAST)
+def test_fit_reports_only_too_few_points_as_bad_k(campaign, surrogate, monkeypatch):
+    # A fault inside the bias model's fit that is not about K must surface as itself, not as an
+    # input error on k.
+    def fail(self, *args, **kwargs):
+        raise ValueError("not about K")
+
+    monkeypatch.setattr(GMMGPBias, "fit", fail)
+    with pytest.raises(ValueError, match="not about K") as err:
+        fit_model(campaign, MethodConfig(k=1, **FAST), surrogate=surrogate)
     assert not isinstance(err.value, InputError)
 
 
 def test_a_companion_curve_at_prediction_is_the_one_the_bias_was_learnt_on(campaign, surrogate, model):
     # Companions cut before separation must borrow the surrogate's unloading at prediction too,
     # not continue their own: the unloading bias belongs to the branch it was measured against.
-    companions = dataclasses.replace(model, settings={**model.settings, "use_companion": True})
+    companions = dataclasses.replace(model, config=dataclasses.replace(model.config, use_companion=True))
     origins = set()
     for t in campaign.tests:
         test = campaign.pulses[t]
@@ -313,9 +318,9 @@ def test_cli_fit_predict_round_trip(tmp_path, capsys):
 def test_relative_true_bias_reproduces_the_test(campaign, surrogate):
     # The relative target learns (a_test - a_cae) / scale(a_cae); the rollout multiplies it back.
     others = [t for t in campaign.tests if t != "T04"]
-    m = fit_model(campaign, 1, inputs="paper", holdout=others, surrogate=surrogate, use_companion=True,
-                  n_grid=300, target="relative")
-    assert m.relative and m.settings["target"] == "relative"
+    config = MethodConfig(k=1, inputs="paper", use_companion=True, n_grid=300, target="relative")
+    m = fit_model(campaign, config, holdout=others, surrogate=surrogate)
+    assert m.relative and m.config.target == "relative"
     test = campaign.pulses["T04"]
     pred = _at(m, test, n_samples=50, random_state=1)
     early = pred.time <= 0.06
@@ -340,21 +345,22 @@ def test_joint_state_coverage_flags_low_speed_at_large_crush(campaign, surrogate
     assert state_outside(table, x, v) == 0.0
     assert state_outside(table, np.array([0.05, 0.5]), np.array([3.0, 3.0])) == 1.0  # slow at the start and middle
     assert state_outside(table, np.array([2.0]), np.array([0.0])) == 1.0  # beyond the data
-    m = fit_model(campaign, 1, inputs="state", holdout="T01", surrogate=surrogate, **FAST)
+    m = fit_model(campaign, MethodConfig(k=1, inputs="state", **FAST), holdout="T01", surrogate=surrogate)
     p01 = _at(m, campaign.pulses["T01"], n_samples=20, random_state=0)
     assert p01.extrapolation["state"] and p01.extrapolation["any"]
-    p_paper = _at(fit_model(campaign, 1, inputs="paper", holdout="T01", surrogate=surrogate, **FAST),
-                  campaign.pulses["T01"], n_samples=20, random_state=0)
+    paper = fit_model(campaign, MethodConfig(k=1, inputs="paper", **FAST), holdout="T01", surrogate=surrogate)
+    p_paper = _at(paper, campaign.pulses["T01"], n_samples=20, random_state=0)
     assert "state" not in p_paper.extrapolation
 
 
 def test_choose_k_scores_each_k_on_training_tests_only(campaign, surrogate, monkeypatch):
+    from crashfuse.evaluation.kchoice import choose_k
     from crashfuse.method import model as model_module
     seen = []
     real = model_module.bias_data
     monkeypatch.setattr(model_module, "bias_data", lambda c, tests, *a, **kw: seen.append(list(tests)) or real(c, tests, *a, **kw))
     held = ["T05", "T06", "T07", "T08", "T09", "T10", "T11"]  # 4 training tests keep it quick
-    k, scores = model_module.choose_k(campaign, ks=(1, 2), inputs="state", holdout=held, surrogate=surrogate, **FAST)
+    k, scores = choose_k(campaign, MethodConfig(inputs="state", **FAST), ks=(1, 2), holdout=held, surrogate=surrogate)
     assert set(scores) == {1, 2} and k in scores and np.isfinite(scores[1])
     assert scores[k] == max(scores.values())
     # every refit leaves one training test out, and no fit ever sees the held-out tests
@@ -364,10 +370,10 @@ def test_choose_k_scores_each_k_on_training_tests_only(campaign, surrogate, monk
 
 @pytest.mark.parametrize(("inputs", "trend"), [("paper", "constant"), ("state", "zero")])
 def test_each_input_mode_has_its_default_trend(campaign, surrogate, inputs, trend):
-    model = fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, **FAST)
-    assert model.settings["trend"] == trend
+    model = fit_model(campaign, MethodConfig(k=1, inputs=inputs, **FAST), surrogate=surrogate)
+    assert model.config.trend == trend
     assert all(gp.trend == trend for est in model.bias_.values() if est is not None for gp in est.gps_)
-    other = fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, trend="linear", **FAST)
+    other = fit_model(campaign, MethodConfig(k=1, inputs=inputs, trend="linear", **FAST), surrogate=surrogate)
     assert all(gp.trend == "linear" for gp in other.bias_["loading"].gps_)
 
 
@@ -375,13 +381,13 @@ def test_each_input_mode_has_its_default_trend(campaign, surrogate, inputs, tren
 @pytest.mark.parametrize(("inputs", "pooled"), [("paper", False), ("state", True)])
 def test_each_input_mode_has_its_default_clusters(campaign, surrogate, inputs, pooled):
     """paper: the published independent cluster GPs; state: cluster GPs on a pooled GP's residual."""
-    model = fit_model(campaign, 2, inputs=inputs, surrogate=surrogate, min_cluster_points=10, **FAST)
+    config = MethodConfig(k=2, inputs=inputs, min_cluster_points=10, **FAST)
+    model = fit_model(campaign, config, surrogate=surrogate)
     est = model.bias_["loading"]
     est = est.base_ if isinstance(est, OnsetCorrectedBias) else est
-    assert model.settings["pooled"] is pooled and est.pooled is pooled
+    assert model.config.pooled is pooled and est.pooled is pooled
     assert (est.pooled_gp_ is not None) is (pooled and len(est.gps_) > 1)
-    other = fit_model(campaign, 2, inputs=inputs, surrogate=surrogate, pooled=not pooled, min_cluster_points=10,
-                      **FAST)
+    other = fit_model(campaign, dataclasses.replace(config, pooled=not pooled), surrogate=surrogate)
     other = other.bias_["loading"]
     assert (other.base_ if isinstance(other, OnsetCorrectedBias) else other).pooled is not pooled
 
@@ -389,8 +395,8 @@ def test_each_input_mode_has_its_default_clusters(campaign, surrogate, inputs, p
 @pytest.mark.parametrize(("inputs", "onset"), [("paper", False), ("state", True)])
 def test_each_input_mode_has_its_default_onset_correction(campaign, surrogate, inputs, onset):
     """state: the loading branch's model corrects its held-out error over the time since contact."""
-    model = fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, **FAST)
-    assert model.settings["onset"] is onset
+    model = fit_model(campaign, MethodConfig(k=1, inputs=inputs, **FAST), surrogate=surrogate)
+    assert model.config.onset is onset
     assert isinstance(model.bias_["loading"], OnsetCorrectedBias) is onset
     assert isinstance(model.bias_["unloading"], GMMGPBias)
     if onset:
@@ -398,11 +404,11 @@ def test_each_input_mode_has_its_default_onset_correction(campaign, surrogate, i
         x, v = np.array([0.05, 0.3]), np.array([14.0, 10.0])
         X = model.features("loading", x, v, model.condition(15.0, 1000.0, 700.0))
         np.testing.assert_allclose(est.time(X), 2 * x / (15.0 + v))
-        off = fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, onset=False, **FAST)
-        assert isinstance(off.bias_["loading"], GMMGPBias) and off.settings["onset"] is False
+        off = fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=False, **FAST), surrogate=surrogate)
+        assert isinstance(off.bias_["loading"], GMMGPBias) and off.config.onset is False
     else:
         with pytest.raises(InputError, match="state inputs"):
-            fit_model(campaign, 1, inputs=inputs, surrogate=surrogate, onset=True, **FAST)
+            fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=True, **FAST), surrogate=surrogate)
 
 def test_rollout_rebound_is_sought_where_pulse_metrics_seeks_it():
     # A long record whose velocity keeps falling after 200 ms: only the rebound inside the

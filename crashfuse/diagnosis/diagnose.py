@@ -141,7 +141,7 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
         Fewer than two tests (unless ``in_sample``), no CAE runs, unknown effects, bad settings.
     """
     say = progress or (lambda line: None)
-    effects = [check_effect(e, "--effects") for e in dict.fromkeys(effects)]
+    effects = [check_effect(e, "effects") for e in dict.fromkeys(effects)]
     _check(campaign, threshold, min_wins, in_sample)
     holdout = len(campaign.tests) >= 2
     regions = regions and holdout
@@ -195,12 +195,12 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, threshold: float, min_
 
 def _check(campaign, threshold, min_wins, in_sample):
     if not (0 <= threshold < 1):
-        raise InputError(f"expected a threshold in [0, 1), got {threshold}", field="--threshold")
+        raise InputError(f"expected a threshold in [0, 1), got {threshold}", field="threshold")
     if not (0 < min_wins <= 1):
-        raise InputError(f"expected min_wins in (0, 1], got {min_wins}", field="--min-wins")
+        raise InputError(f"expected min_wins in (0, 1], got {min_wins}", field="min_wins")
     if len(campaign.tests) < 2 and not in_sample:
-        raise InputError(f"the campaign has {len(campaign.tests)} test(s): a held-out diagnosis needs at least 2 "
-                         f"(pass --in-sample to fit a single test without hold-out)", campaign.root, "source")
+        raise InputError(f"the campaign has {len(campaign.tests)} test(s): a held-out diagnosis needs at least 2; "
+                         f"an in-sample one (in_sample) fits a single test without hold-out", campaign.root, "source")
 
 
 def _fold_rows(n: int) -> np.ndarray:

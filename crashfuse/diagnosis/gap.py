@@ -34,6 +34,7 @@ from crashfuse.signals.iso18571 import A0
 from crashfuse.signals.iso18571 import DT as ISO_DT
 from crashfuse.signals.iso18571 import MIN_SAMPLES as ISO_MIN_SAMPLES
 from crashfuse.signals.iso18571 import WEIGHTS, iso_score
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import Condition, FittedModel, fit_model
 from crashfuse.method.projection import BRANCHES, bias_data
 from crashfuse.method.surrogate import CAESurrogate
@@ -246,7 +247,7 @@ def locate_gap(campaign: Campaign, surrogate: CAESurrogate | None = None, k: int
     surrogate : CAESurrogate, optional
         Fitted on the campaign's CAE runs (fitted here, seeded by ``random_state``, if not given).
     k : int, optional
-        Mixture components; default the BIC-best of 1-3 (:func:`choose_k`).
+        Mixture components; default the BIC-best of 1-3 (:func:`mixture_bic_k`).
     random_state : int
         Seeds the surrogate, the mixture and the GPs.
     windows_ms : sequence of (float, float)
@@ -268,9 +269,10 @@ def locate_gap(campaign: Campaign, surrogate: CAESurrogate | None = None, k: int
     data = bias_data(campaign, campaign.tests, "paper", surrogate=surrogate, use_companion=True).loading
     bic = {}
     if k is None:
-        k, bic = choose_k(data.X, random_state)
-    model = fit_model(campaign, k, inputs="paper", use_companion=True, surrogate=surrogate,
-                      random_state=random_state, estimate_scatter=False)  # significance: the latent band
+        k, bic = mixture_bic_k(data.X, random_state)
+    config = MethodConfig(k=k, inputs="paper", use_companion=True, random_state=random_state,
+                          estimate_scatter=False)  # significance: the latent band
+    model = fit_model(campaign, config, surrogate=surrogate)
     tests = tuple(_test_gap(campaign, model, t) for t in campaign.tests)
     total = sum(_sq_mass(p, None, -np.inf, np.inf) for t in tests for p in t.profiles.values())
     intervals = tuple(sorted(_intervals(tests, total), key=lambda i: -i.share))
@@ -282,13 +284,16 @@ def locate_gap(campaign: Campaign, surrogate: CAESurrogate | None = None, k: int
                   regimes=_regimes(model, data), total_sq_gap=float(total))
 
 
-def choose_k(X, random_state: int = 0, candidates=K_CANDIDATES) -> tuple[int, dict]:
-    """K of the bias model's mixture by BIC, on its own clustering view (standardised inputs).
+def mixture_bic_k(X, random_state: int = 0, candidates=K_CANDIDATES) -> tuple[int, dict]:
+    """How many clusters the gap map's bias inputs form: the K of a mixture alone by BIC.
 
     A mixture of the same form as :class:`crashfuse.method.mixture.GMMGPBias`'s (full covariance, 5
-    initialisations, covariance floor 1e-3), seeded with ``random_state`` as given and without its
-    small-cluster merging, so the K chosen here is a model-selection reading, not the clusters the
-    bias model then fits; candidates above the number of points are skipped.
+    initialisations, covariance floor 1e-3) on its clustering view (standardised inputs), seeded
+    with ``random_state`` as given and without its small-cluster merging, so the K chosen here is a
+    model-selection reading, not the clusters the bias model then fits; candidates above the number
+    of points are skipped. It fits no GP and looks at no held-out test: the method's default K,
+    how well the whole bias model predicts a test it did not see, is
+    :func:`crashfuse.evaluation.kchoice.choose_k`.
 
     Parameters
     ----------

@@ -33,6 +33,7 @@ from crashfuse.evaluation.records import FoldRecord, fold_folder, write_fold_jso
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
 from crashfuse.signals.iso18571 import iso_score
+from crashfuse.method.config import BIAS_SETTINGS, MethodConfig
 from crashfuse.method.model import fit_model
 from crashfuse.method.projection import BRANCHES, INPUTS
 from crashfuse.method.rollout import predict
@@ -76,7 +77,7 @@ class Evaluation:
 def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.PathLike | None = None,
              n_samples: int = 1000, random_state: int = 0, n_jobs: int = 2, surrogate: CAESurrogate | None = None,
              holdout=None, progress: Callable[[str], None] | None = print, band: str = "test",
-             **fit_kwargs) -> Evaluation:
+             **settings) -> Evaluation:
     """Every leave-one-test-out fold for each K in ``ks`` and each input mode.
 
     Parameters
@@ -105,11 +106,12 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     band : {"test", "latent"}
         The reported band (:func:`crashfuse.method.rollout.predict`) that ``coverage`` measures; the latent
         band's coverage is recorded either way.
-    **fit_kwargs
-        Passed to :func:`crashfuse.method.model.fit_model` (``assignment``, ``extra_inputs``, ``n_grid``,
-        ``use_companion``, ``target``, ``weights``, ``velocity``, ``pooled``, ``onset`` - the state folds'
-        only: the paper inputs carry no time - and :class:`crashfuse.method.mixture.GMMGPBias` settings such as
-        ``theta_max_candidates`` or ``calibrate_variance``).
+    **settings
+        Further :class:`crashfuse.method.config.MethodConfig` settings of every fold (``assignment``,
+        ``extra_inputs``, ``n_grid``, ``use_companion``, ``target``, ``weights``, ``velocity``, ``trend``,
+        ``pooled``, ``onset`` - the state folds' only: the paper inputs carry no time - and the
+        GMMGPBias settings such as ``theta_max_candidates`` or ``calibrate_variance``); None for
+        ``target``, ``trend``, ``pooled`` or ``onset`` keeps each input mode's default.
 
     Returns
     -------
@@ -117,13 +119,14 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     """
     t0 = time.perf_counter()
     ks, inputs = _check_grid(ks, inputs)
+    configs = fold_configs(ks, inputs, random_state, settings)
     tests = _held_out(campaign, holdout)
     surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
-    folds = [(mode, k, t) for mode in inputs for k in ks for t in tests]
+    folds = [(configs[mode, k], t) for mode in inputs for k in ks for t in tests]
     say = progress or (lambda line: None)
     say(f"evaluate: {len(folds)} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
     results = []
-    for i, res in enumerate(_run_folds(campaign, surrogate, folds, n_jobs, (n_samples, random_state, band, fit_kwargs)), 1):
+    for i, res in enumerate(_run_folds(campaign, surrogate, folds, n_jobs, (n_samples, band)), 1):
         results.append(res)
         cov = res["coverage"]
         say(f"[{i}/{len(folds)}] {cov['inputs']} {cov['model']} {cov['test_id']}: "
@@ -152,23 +155,39 @@ def _held_out(campaign: Campaign, holdout) -> list[str]:
     wanted = {holdout} if isinstance(holdout, str) else set(holdout)
     unknown = sorted(wanted - set(tests))
     if unknown or not wanted:
-        raise InputError(f"expected test run_ids among {tests}, got {sorted(wanted)}", campaign.root, "--holdout")
+        raise InputError(f"expected test run_ids among {tests}, got {sorted(wanted)}", campaign.root, "holdout")
     return [t for t in tests if t in wanted]
 
 
 def _check_grid(ks, inputs):
     ks = list(ks)
     if not ks or any(isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1 for k in ks):
-        raise InputError(f"expected integers K >= 1, got {ks}", field="--k")
+        raise InputError(f"expected integers K >= 1, got {ks}", field="k")
     inputs = [inputs] if isinstance(inputs, str) else list(inputs)
     bad = [m for m in inputs if m not in INPUTS]
     if not inputs or bad:
-        raise InputError(f"expected input modes among {INPUTS}, got {inputs}", field="--inputs")
+        raise InputError(f"expected input modes among {INPUTS}, got {inputs}", field="inputs")
     return ks, inputs
 
 
+def fold_configs(ks, inputs, random_state: int, settings: dict) -> dict:
+    """The :class:`MethodConfig` of every (input mode, K); ``onset`` applies to the state folds only.
+
+    Raises
+    ------
+    InputError
+        A bad setting (naming it), before any fold runs.
+    """
+    out = {}
+    for mode in inputs:
+        given = {name: value for name, value in settings.items() if mode == "state" or name != "onset"}
+        for k in ks:
+            out[mode, k] = MethodConfig(k=k, inputs=mode, random_state=random_state, **given)
+    return out
+
+
 def _run_folds(campaign, surrogate, folds, n_jobs, settings):
-    """``_fold`` of every ``(mode, k, test_id)`` in ``folds``, in order, on ``n_jobs`` processes.
+    """``_fold`` of every ``(config, test_id)`` in ``folds``, in order, on ``n_jobs`` processes.
 
     The campaign and the surrogate (120 MB pickled for the 1031-run ``paper`` campaign) reach each
     worker process once, through a temporary pickle: passed with every fold, pickling and unpickling
@@ -196,13 +215,11 @@ def _load_shared(path):
         return pickle.load(fh)
 
 
-def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, band, fit_kwargs) -> dict:
-    """Fit without ``test_id``, predict its condition, rate and measure the band coverage."""
+def _fold(campaign, surrogate, config: MethodConfig, test_id, n_samples, band) -> dict:
+    """Fit ``config`` without ``test_id``, predict its condition, rate and measure the band coverage."""
     t0 = time.perf_counter()
-    if mode != "state":
-        fit_kwargs = {key: value for key, value in fit_kwargs.items() if key != "onset"}
-    model = fit_model(campaign, k, inputs=mode, holdout=test_id, random_state=random_state, surrogate=surrogate,
-                      **fit_kwargs)
+    mode, k, random_state = config.inputs, config.k, config.random_state
+    model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate)
     t1 = time.perf_counter()
     test = campaign.pulses[test_id].after_contact()
     pred = predict(model, test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
@@ -224,7 +241,7 @@ def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, band, 
         campaign={"name": campaign.root.name if campaign.root else "campaign", "hash": model.campaign_hash},
         conditions={"v0_mps": test.v0, "front_weight_kg": test.front_weight, "rear_weight_kg": test.rear_weight,
                     "powertrain": str(test.meta.get("powertrain")), "drive": str(test.meta.get("drive"))},
-        settings={**_scalar_settings(model.settings, n_samples), "band": band},
+        settings={**fold_settings(model.config, n_samples), "band": band},
         iso={row["window_ms"]: {s: row[s] for s in SCORES} for row in iso},
         metrics={"coverage_95_0_60": cov, "coverage_latent_95_0_60": cov_latent, "fit_seconds": t1 - t0,
                  "predict_seconds": t2 - t1,
@@ -237,11 +254,16 @@ def _fold(campaign, surrogate, mode, k, test_id, n_samples, random_state, band, 
     return {"iso": iso, "coverage": coverage, "frame": frame, "record": record}
 
 
-def _scalar_settings(settings: dict, n_samples: int) -> dict:
-    """Model settings as the fold JSON's scalars (bias parameters flattened, tuples as text)."""
-    flat = {k: v for k, v in settings.items() if k not in ("bias_params", "holdout", "k", "inputs", "random_state")}
+def fold_settings(config: MethodConfig, n_samples: int) -> dict:
+    """A fold's settings as the fold JSON's scalars (docs/tracking.md).
+
+    K, the input mode and the seed have their own fields there. The GMMGPBias settings appear
+    only where they differ from the bias model's defaults, as ``bias_<name>`` (tuples as text).
+    """
+    own = {"k", "inputs", "random_state", *BIAS_SETTINGS}
+    flat = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in own}
     flat.update({f"bias_{k}": v if isinstance(v, (str, bool, int, float)) or v is None else str(v)
-                 for k, v in settings["bias_params"].items()})
+                 for k, v in config.changed_bias_settings().items()})
     return {**flat, "n_samples": int(n_samples)}
 
 
@@ -329,7 +351,7 @@ def write_evaluation(result: Evaluation, out: str | os.PathLike) -> Path:
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise InputError("expected a folder for the evaluation outputs, found a file", out, "--out")
+        raise InputError("expected a folder for the evaluation outputs, found a file", out, "out")
     for key, frame in result.predictions.items():
         folder = fold_folder(out, *key)
         _write_csv(frame, folder / f"{key[2]}_prediction.csv")

@@ -326,7 +326,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
             return np.full(len(X), np.sqrt(self.pooled_gp_.scatter_var_))
         if not all(hasattr(gp, "scatter_var_") for gp in self.gps_):
             raise InputError("this bias model was fitted before the test-to-test scatter existed: refit it, or "
-                             "ask for the latent band (--band latent)", field="band")
+                             "ask for the latent band (band 'latent')", field="band")
         w = self._weights(check_array(X))
         return np.sqrt(w @ np.array([gp.scatter_var_ for gp in self.gps_]))
 

@@ -1,9 +1,9 @@
-"""The fitted model: CAE surrogate + one GMM-GP bias model per branch + settings; save and load.
+"""The fitted model: CAE surrogate + one GMM-GP bias model per branch + its config; save and load.
 
 A :class:`FittedModel` holds everything a prediction needs (:func:`crashfuse.method.rollout.predict`):
 the CAE surrogate G_a, the companion CAE runs of the campaign's tests (for ``use_companion``),
 the loading and unloading bias models, the training ranges (for extrapolation flags), the
-settings, the campaign's content hash and the crashfuse version.
+:class:`crashfuse.method.config.MethodConfig`, the campaign's content hash and the crashfuse version.
 
 Model (and shared surrogate) files hold data only (:mod:`crashfuse.io.persist`: a zip of a JSON
 header and numpy arrays, checked by SHA-256): opening one runs no code from it. The header records
@@ -28,7 +28,8 @@ from crashfuse.signals.dynamics import Trajectory
 from crashfuse.errors import InputError
 from crashfuse.io import persist
 from crashfuse.io.campaign import Campaign
-from crashfuse.method.projection import BRANCHES, INPUTS, BiasData, bias_data, bias_inputs, column_velocity, nominal_time
+from crashfuse.method.config import MethodConfig
+from crashfuse.method.projection import BRANCHES, BiasData, bias_data, bias_inputs, column_velocity, nominal_time
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
@@ -36,24 +37,6 @@ from crashfuse.method.surrogate import CAECurve, CAESurrogate
 FORMAT = {"model": 4, "surrogate": 2}
 # What a user does about a file of another format.
 _REFIT = {"model": "refit with `crashfuse fit`", "surrogate": "refit with `crashfuse prepare`"}
-# What the bias GPs learn by default: the paper's absolute bias; in the state mode the bias relative
-# to the CAE deceleration (a rate effect scales the force), chosen by grouped leave-one-test-out
-# density on the training tests (docs/method-rollout.md).
-DEFAULT_TARGET = {"paper": "absolute", "state": "relative"}
-# The GPs' trend: the paper's constant level; in the state mode none (simple kriging, the
-# Kennedy-O'Hagan zero-mean discrepancy): where no test informs the bias - a slower test, a
-# sparser cluster - the correction fades to zero and the prediction to the CAE model's
-# (docs/method-rollout.md, "Trend").
-DEFAULT_TREND = {"paper": "constant", "state": "zero"}
-# Clusters beyond K = 1: the paper's independent cluster GPs, or (state mode) cluster GPs on the
-# residual of one pooled GP, so that a sparse cluster falls back on the pooled model instead of on
-# its few tests (docs/bias-model.md, "Pooled clusters").
-DEFAULT_POOLED = {"paper": False, "state": True}
-# The state mode's loading-branch bias also corrects its own held-out error over the time since
-# contact in the first 15-22 ms, where onset transients locked in time move with speed in s
-# (:class:`crashfuse.method.onset.OnsetCorrectedBias`; docs/bias-model.md, "Onset correction"). The
-# paper mode has no velocity, hence no time.
-DEFAULT_ONSET = {"paper": False, "state": True}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
 _MATCH_RTOL = 1e-6  # a condition "is" a test's when v0 and both masses agree to this
 _REACH_TOL = 0.02  # crush or rebound up to 2 % beyond the bias data is not flagged (thinning, rounding)
@@ -88,9 +71,10 @@ class FittedModel:
     bias_ : dict of str to GMMGPBias, OnsetCorrectedBias or None
         Per branch (the onset correction wraps the loading branch's model); None where the
         training tests gave no points on that branch (zero bias).
-    settings : dict
-        ``k, inputs, assignment, extra_inputs, n_grid, use_companion, random_state, holdout, target,
-        trend, pooled, onset, weights, velocity, bias_params`` (the arguments of :func:`fit_model`).
+    config : MethodConfig
+        The settings of the fit (input-mode defaults resolved).
+    holdout : list of str
+        run_ids of the tests kept out of the bias data, sorted.
     columns : dict of str to tuple of str
         Bias input columns per branch, in order (:func:`crashfuse.method.projection.bias_columns`).
     training_tests : list of str
@@ -117,7 +101,8 @@ class FittedModel:
 
     surrogate: CAESurrogate
     bias_: dict
-    settings: dict
+    config: MethodConfig
+    holdout: list
     columns: dict
     training_tests: list
     groups: dict
@@ -131,12 +116,12 @@ class FittedModel:
     @property
     def inputs(self) -> str:
         """Bias input mode: ``paper`` or ``state``."""
-        return self.settings["inputs"]
+        return self.config.inputs
 
     @property
     def relative(self) -> bool:
         """True if the bias models learn the bias relative to the CAE deceleration."""
-        return self.settings.get("target", "absolute") == "relative"
+        return self.config.target == "relative"
 
     def condition(self, v0, front_weight, rear_weight, powertrain=None, drive=None) -> Condition:
         """A validated :class:`Condition` (SI).
@@ -186,7 +171,7 @@ class FittedModel:
             If the surrogate would extrapolate (condition outside the CAE runs' range) and no
             companion run matches.
         """
-        pulse = self._companion(cond) if self.settings["use_companion"] else None
+        pulse = self._companion(cond) if self.config.use_companion else None
         if pulse is None:
             return self._surrogate_curve(cond, check=True)
         # Built as the training data built it (projection.cae_curve): a companion that does not reach
@@ -286,60 +271,25 @@ def _load(kind: str, cls, path):
     return obj
 
 
-def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, assignment: str = "select",
-              extra_inputs: bool = False, n_grid: int | None = 200, use_companion: bool = False,
-              random_state: int = 0, surrogate: CAESurrogate | None = None, target: str | None = None,
-              trend: str | None = None, pooled: bool | None = None, onset: bool | None = None, weights: bool = True,
-              velocity: str = "sqrt", **bias_params) -> FittedModel:
+def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
+              surrogate: CAESurrogate | None = None) -> FittedModel:
     """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
 
     Parameters
     ----------
     campaign : Campaign
         Tests and CAE runs (SI, CFC 60 as read).
-    k : int
-        Mixture components K of each branch's bias model. Clusters the data cannot support (fewer
-        points than :class:`GMMGPBias` needs) are merged into their nearest neighbour: the model
-        keeps fewer GPs (``len(bias_['loading'].gps_)``), it does not fail.
-    inputs : {"paper", "state"}
-        Bias inputs ``[x, v0, w_f, w_r]`` or ``[x, v, v0, w_f, w_r]``.
+    config : MethodConfig
+        The settings: K, input mode, bias target, trend, GMMGPBias settings ... Clusters the data
+        cannot support (fewer points than :class:`GMMGPBias` needs) are merged into their nearest
+        neighbour: the model keeps fewer GPs (``len(bias_['loading'].gps_)``), it does not fail.
     holdout : str or sequence of str, optional
         Test run_id(s) kept out of the bias data (a leave-one-test-out fold).
-    assignment : {"select", "blend"}
-        Cluster rule of :class:`GMMGPBias`.
-    extra_inputs : bool
-        Append one-hot powertrain and drive to the bias inputs.
-    n_grid : int or None
-        Bias points per test per branch after thinning (:func:`crashfuse.method.projection.bias_data`).
-    use_companion : bool
-        At prediction, use a test's companion CAE run directly when the condition is that test's
-        (the bias data always pair each test with its companion run).
-    random_state : int
-        Seeds the surrogate (as is, like :func:`crashfuse.evaluation.loto.evaluate`) and both bias models.
     surrogate : CAESurrogate, optional
         Already fitted on this campaign's CAE runs (shared across folds; it sees no test data).
-    target : {"absolute", "relative"} or None
-        What the GPs learn: the bias in m/s^2, or the bias relative to the CAE deceleration
-        (:func:`crashfuse.method.projection.bias_scale`); the rollout adds ``scale(a_cae) * bias``.
-        None: ``DEFAULT_TARGET[inputs]`` (``paper`` as published, absolute; ``state`` relative).
-    trend : {"zero", "constant", "linear"} or None
-        The GPs' trend (:class:`crashfuse.gp.kriging.KrigingGP`). None: ``DEFAULT_TREND[inputs]``
-        (``paper`` as published, constant; ``state`` zero).
-    pooled : bool or None
-        With K > 1, fit the cluster GPs on the residual of one GP over all the fold's bias data
-        (:class:`GMMGPBias` ``pooled``). None: ``DEFAULT_POOLED[inputs]`` (``paper`` as
-        published, no; ``state`` yes).
-    onset : bool or None
-        Correct the loading branch's held-out error over the time since contact early in the pulse
-        (:class:`crashfuse.method.onset.OnsetCorrectedBias`; ``state`` inputs only). None:
-        ``DEFAULT_ONSET[inputs]``.
-    weights : bool
-        Axle masses among the bias inputs.
-    velocity : {"linear", "sqrt"}
-        The ``state`` mode's velocity coordinate (:func:`crashfuse.method.projection.bias_data`);
-        ``sqrt`` (default): sign(v) sqrt(|v|), a concave rate coordinate (docs/method-rollout.md).
-    **bias_params
-        Further :class:`GMMGPBias` settings (``n_restarts``, ``max_fit_points`` ...).
+        Otherwise fitted here, seeded with ``config.random_state`` as is, as
+        :func:`crashfuse.evaluation.loto.evaluate` and ``crashfuse prepare`` do (so fitting with
+        holdout T is T's fold).
 
     Returns
     -------
@@ -348,37 +298,24 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     Raises
     ------
     InputError
-        No CAE runs; an unknown or non-test holdout; no training test left; a bad setting; a branch
-        with fewer bias points than the model has parameters.
+        No CAE runs; an unknown or non-test holdout; no training test left; a branch with fewer
+        bias points than the model has parameters.
     """
-    _check_settings(k, inputs, assignment, n_grid, random_state)
-    target = DEFAULT_TARGET[inputs] if target is None else target
-    trend = DEFAULT_TREND[inputs] if trend is None else trend
-    pooled = DEFAULT_POOLED[inputs] if pooled is None else bool(pooled)
-    onset = DEFAULT_ONSET[inputs] if onset is None else bool(onset)
-    if onset and inputs != "state":
-        raise InputError("the onset correction needs the state inputs (the velocity gives the time since contact)",
-                         field="--onset")
+    if not isinstance(config, MethodConfig):
+        raise TypeError(f"expected a MethodConfig, got {type(config).__name__}")
     if not campaign.cae:
         raise InputError("the campaign has no CAE runs: the method corrects a CAE model", campaign.root, "source")
-    held = _holdout(campaign, holdout)
+    held = holdout_tests(campaign, holdout)
     train = [t for t in campaign.tests if t not in held]
     if not train:
-        raise InputError("no training test left after the holdout", campaign.root, "--holdout")
-    if surrogate is None:  # seeded as evaluate and `crashfuse prepare` do: fit --holdout T is T's fold
-        surrogate = CAESurrogate(random_state=random_state).fit(campaign)
-    data = bias_data(campaign, train, inputs, extra_inputs, n_grid, surrogate=surrogate, use_companion=True,
-                     target=target, weights=weights, velocity=velocity)
-    seeds = np.random.RandomState(random_state).randint(SEED_MAX, size=len(BRANCHES))
-    bias = {b: _fit_branch(data, b, k, assignment, int(seed), {"trend": trend, "pooled": pooled, **bias_params},
-                            campaign.root, onset and b == "loading")
-            for b, seed in zip(BRANCHES, seeds)}
-    settings = dict(k=int(k), inputs=inputs, assignment=assignment, extra_inputs=bool(extra_inputs),
-                    n_grid=n_grid, use_companion=bool(use_companion), random_state=random_state,
-                    holdout=sorted(held), target=target, trend=trend, pooled=pooled, onset=onset,
-                    weights=bool(weights), velocity=velocity, bias_params=dict(bias_params))
+        raise InputError("no training test left after the holdout", campaign.root, "holdout")
+    if surrogate is None:
+        surrogate = CAESurrogate(random_state=config.random_state).fit(campaign)
+    data = training_data(campaign, train, config, surrogate)
+    seeds = np.random.RandomState(config.random_state).randint(SEED_MAX, size=len(BRANCHES))
+    bias = {b: _fit_branch(data, b, config, int(seed), campaign.root) for b, seed in zip(BRANCHES, seeds)}
     return FittedModel(
-        surrogate=surrogate, bias_=bias, settings=settings,
+        surrogate=surrogate, bias_=bias, config=config, holdout=sorted(held),
         columns={b: data.branch(b).columns for b in BRANCHES}, training_tests=train,
         groups={b: sorted(set(data.branch(b).groups)) for b in BRANCHES}, missing=dict(data.missing),
         ranges=_ranges(campaign, train, data), companions=_companions(campaign),
@@ -386,43 +323,51 @@ def fit_model(campaign: Campaign, k: int, inputs: str = "paper", holdout=None, a
     )
 
 
-def _check_settings(k, inputs, assignment, n_grid, random_state) -> None:
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-        raise InputError(f"expected an integer K >= 1, got {k!r}", field="--k")
-    if inputs not in INPUTS:
-        raise InputError(f"expected one of {INPUTS}, got {inputs!r}", field="--inputs")
-    if assignment not in ("select", "blend"):
-        raise InputError(f"expected 'select' or 'blend', got {assignment!r}", field="assignment")
-    if n_grid is not None and (isinstance(n_grid, bool) or not isinstance(n_grid, (int, np.integer)) or n_grid < 2):
-        raise InputError(f"expected an integer n_grid >= 2 or None, got {n_grid!r}", field="n_grid")
-    if isinstance(random_state, bool) or not isinstance(random_state, (int, np.integer)) or random_state < 0:
-        raise InputError(f"expected an integer seed >= 0, got {random_state!r}", field="--seed")
+def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CAESurrogate) -> BiasData:
+    """The bias data of ``tests`` as a fit with ``config`` learns them (each test with its companion run).
+
+    Parameters
+    ----------
+    campaign : Campaign
+    tests : sequence of str
+        Test run_ids.
+    config : MethodConfig
+        Supplies the input mode, extra inputs, thinning, target, weights and velocity coordinate.
+    surrogate : CAESurrogate
+        The CAE curve of a test without a companion run.
+
+    Returns
+    -------
+    BiasData
+    """
+    return bias_data(campaign, tests, config.inputs, config.extra_inputs, config.n_grid, surrogate=surrogate,
+                     use_companion=True, target=config.target, weights=config.weights, velocity=config.velocity)
 
 
-def _holdout(campaign: Campaign, holdout) -> set[str]:
+def holdout_tests(campaign: Campaign, holdout) -> set[str]:
+    """The run_ids in ``holdout`` (None, one run_id or several) as a set; InputError if one is not a test."""
     held = set() if holdout is None else {holdout} if isinstance(holdout, str) else set(holdout)
     not_tests = sorted(held - set(campaign.tests))
     if not_tests:
-        raise InputError(f"expected test run_ids to hold out, got {not_tests}", campaign.root, "--holdout")
+        raise InputError(f"expected test run_ids to hold out, got {not_tests}", campaign.root, "holdout")
     return held
 
 
-def _fit_branch(data: BiasData, branch: str, k: int, assignment: str, seed: int, params: dict, root,
-                onset: bool = False):
-    """One branch's GMMGPBias (with the onset correction if asked); None for an unloading branch
-    without data (zero bias there)."""
+def _fit_branch(data: BiasData, branch: str, config: MethodConfig, seed: int, root):
+    """One branch's GMMGPBias (wrapped in the onset correction on the loading branch where the config
+    asks); None for an unloading branch without data (zero bias there)."""
     d = data.branch(branch)
     if d.y.size == 0 and branch == "unloading":
         return None
-    est = GMMGPBias(n_clusters=k, assignment=assignment, random_state=seed, **params)
-    if onset:
+    est = GMMGPBias(n_clusters=config.k, assignment=config.assignment, random_state=seed, **config.bias_params())
+    if config.onset and branch == "loading":
         est = OnsetCorrectedBias(base=est, time=functools.partial(nominal_time, d.columns), random_state=seed,
                                  blas_threads=est.blas_threads)
     try:
         return est.fit(d.X, d.y, d.groups)
     except TooFewPointsError as err:  # too few points for K and the GP parameters
         raise InputError(f"{branch} branch, {d.y.size} bias points from {len(set(d.groups))} tests: {err}",
-                         root, "--k") from None
+                         root, "k") from None
 
 
 def _ranges(campaign: Campaign, train: list, data: BiasData) -> dict:
@@ -493,55 +438,3 @@ def _companions(campaign: Campaign) -> list:
                                   p.meta.get("drive")), pulse))
     return out
 
-
-def choose_k(campaign: Campaign, ks=(1, 2, 3), inputs: str = "state", holdout=None, random_state: int = 0,
-             surrogate: CAESurrogate | None = None, **fit_kwargs) -> tuple[int, dict]:
-    """The default-K rule, from training data only: inner leave-one-test-out log density.
-
-    For each K and each training test ``t`` (all but ``holdout``), the whole bias model (mixture
-    and GPs, hyperparameters included) is refitted on the other training tests and scores the
-    bias points of ``t``: the mean marginal normal log density per point (y units, predictive
-    std of the selected or blended GP), both branches pooled. A held-out test is never used.
-
-    Parameters
-    ----------
-    campaign : Campaign
-    ks : sequence of int
-    inputs : {"paper", "state"}
-    holdout : str or sequence of str, optional
-    random_state : int
-    surrogate : CAESurrogate, optional
-        Fitted once here if not given.
-    **fit_kwargs
-        Passed to :func:`fit_model` (e.g. cheaper ``n_restarts`` for the many refits).
-
-    Returns
-    -------
-    k : int
-        The best K (the smallest among ties).
-    scores : dict of int to float
-        Mean log density per bias point for each K.
-    """
-    surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
-    train = [t for t in campaign.tests if t not in _holdout(campaign, holdout)]
-    data = bias_data(campaign, train, inputs, fit_kwargs.get("extra_inputs", False), fit_kwargs.get("n_grid", 200),
-                     surrogate=surrogate, use_companion=True,
-                     target=fit_kwargs.get("target") or DEFAULT_TARGET[inputs],
-                     weights=fit_kwargs.get("weights", True), velocity=fit_kwargs.get("velocity", "sqrt"))
-    scores = {}
-    for k in ks:
-        logs = []
-        for t in train:
-            model = fit_model(campaign, k, inputs, holdout=[t, *(set(campaign.tests) - set(train))],
-                              random_state=random_state, surrogate=surrogate,
-                              **{"estimate_scatter": False, **fit_kwargs})  # the density uses the latent sd
-            for b in BRANCHES:
-                d, est = data.branch(b), model.bias_.get(b)
-                rows = d.groups == t
-                if est is None or not rows.any():
-                    continue
-                mu, sd = est.predict(d.X[rows], return_std=True)
-                sd = np.maximum(sd, 1e-12 * max(1.0, float(np.abs(d.y).max())))
-                logs.append(-0.5 * (np.log(2 * np.pi * sd**2) + (d.y[rows] - mu) ** 2 / sd**2))
-        scores[int(k)] = float(np.mean(np.concatenate(logs)))
-    return max(scores, key=lambda k: (scores[k], -k)), scores

@@ -24,10 +24,11 @@ from matplotlib.patches import Patch
 from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import BASELINE, SCORES, model_order, window_bounds
 from crashfuse.evaluation.records import fold_folder
-from crashfuse.io.tables import read_table
 from crashfuse.io.atomic import atomic_path
+from crashfuse.io.tables import read_table
+from crashfuse.method.projection import INPUTS
+from crashfuse.reporting.tables import natural_key, read_iso_table, table2, table_file
 from crashfuse.signals.pulse import Pulse
-from crashfuse.reporting.tables import INPUTS, natural_key, read_iso_table, table2, table_file
 from crashfuse.units import G0, MM, MPH, MS
 
 PREDICTION_COLUMNS = ("time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g")
@@ -176,12 +177,12 @@ def iso_summary_figure(frame: pd.DataFrame, window: str = "0-60", score: str = "
         each model's mean over the tests.
     """
     if score not in SCORES:
-        raise InputError(f"expected a score in {SCORES}, got {score!r}", table_file(frame), "--score")
+        raise InputError(f"expected a score in {SCORES}, got {score!r}", table_file(frame), "score")
     rows = frame[frame["window_ms"] == window]
     if rows.empty:
         windows = sorted(frame["window_ms"].unique(), key=window_bounds)
         raise InputError(f"expected a window_ms label of the table {windows}, got {window!r}", table_file(frame),
-                         "--window")
+                         "window")
     modes = [m for m in INPUTS if (rows["inputs"] == m).any()]
     tests = sorted(rows["test_id"].unique(), key=natural_key)
     models = sorted(rows["model"].unique(), key=model_order)

@@ -21,8 +21,8 @@ from crashfuse.evaluation.iso_table import (COLUMNS, ISO_TABLE, KEYS, SCORES, is
                                             window_bounds)
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.tables import read_table
+from crashfuse.method.projection import INPUTS
 
-INPUTS = ("paper", "state")
 _NATURAL = re.compile(r"([0-9]+)")
 _SOURCE = "source"  # frame.attrs key: the file a table was read from, to locate errors found later
 
@@ -126,7 +126,7 @@ def table2(frame: pd.DataFrame, inputs: str, score: str = "overall") -> pd.DataF
         the windows in order of start then end. A missing cell is NaN.
     """
     if score not in SCORES:
-        raise InputError(f"expected a score in {SCORES}, got {score!r}", table_file(frame), "--score")
+        raise InputError(f"expected a score in {SCORES}, got {score!r}", table_file(frame), "score")
     rows = frame[frame["inputs"] == inputs]
     if rows.empty:
         raise InputError(f"expected rows with inputs {inputs!r}, found none", table_file(frame), "inputs")

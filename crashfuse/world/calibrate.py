@@ -141,7 +141,7 @@ def report(folder, refit: bool = True, max_nfev: int = 60) -> str:
         Side-by-side table(s) and, after a fit, the fitted constants to commit.
     """
     if max_nfev < 1:
-        raise InputError(f"expected at least 1 simulator evaluation, got {max_nfev}", field="--max-evals")
+        raise InputError(f"expected at least 1 simulator evaluation, got {max_nfev}", field="max_nfev")
     real = read_nhtsa(folder)
     fmt = {"float_format": lambda x: f"{x:.3f}", "index": False}
     lines = ["NHTSA 10146 vs the physical-test simulator (paper preset test side), committed defaults:",

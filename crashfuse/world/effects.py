@@ -124,16 +124,16 @@ def params_at_strength(strength: str = "realistic", effects=EFFECTS) -> dict:
         ``{"effect.param": value}`` in SI for every parameter of :data:`QUANTITIES`.
     """
     if strength not in STRENGTHS:
-        raise InputError(f"unknown strength {strength!r}; expected one of {STRENGTHS}", field="--strength")
+        raise InputError(f"unknown strength {strength!r}; expected one of {STRENGTHS}", field="strength")
     params = dict(REALISTIC)
     if strength == "subtle":
         for name in effects:
-            params.update(SUBTLE[check_effect(name, field="--withhold")])
+            params.update(SUBTLE[check_effect(name, field="withhold")])
     return params
 
 
 def parse_overrides(items) -> dict:
-    """Parse ``["effect.param=value", ...]`` (``--effect-param``) into a dict of floats.
+    """Parse ``["effect.param=value", ...]`` into a dict of floats (``overrides`` of :func:`crashfuse.world.presets.resolve`).
 
     Raises
     ------
@@ -145,18 +145,18 @@ def parse_overrides(items) -> dict:
         name, sep, text = item.partition("=")
         name = name.strip()
         if not sep:
-            raise InputError(f"expected name=value, got {item!r}", field="--effect-param")
-        check_effect(name.split(".")[0], field="--effect-param")
+            raise InputError(f"expected name=value, got {item!r}", field="overrides")
+        check_effect(name.split(".")[0], field="overrides")
         if name not in REALISTIC:
             known = ", ".join(k for k in REALISTIC if k.startswith(name.split(".")[0] + "."))
-            raise InputError(f"unknown parameter {name!r}; expected one of {known}", field="--effect-param")
+            raise InputError(f"unknown parameter {name!r}; expected one of {known}", field="overrides")
         try:
             value = float(text)
         except ValueError:
-            raise InputError(f"{name}: expected a number, got {text!r}", field="--effect-param") from None
+            raise InputError(f"{name}: expected a number, got {text!r}", field="overrides") from None
         if not math.isfinite(value) or value < 0 or (value == 0 and name in POSITIVE):
             need = "> 0" if name in POSITIVE else ">= 0"
-            raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="--effect-param")
+            raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="overrides")
         out[name] = value
     return out
 

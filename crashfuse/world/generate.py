@@ -123,5 +123,5 @@ def generate(out: str | os.PathLike, design: Design, seed: int = 0, n_cae: int =
 
 def _check_seed(seed) -> int:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"expected an integer seed >= 0, got {seed!r}", field="--seed")
+        raise InputError(f"expected an integer seed >= 0, got {seed!r}", field="seed")
     return int(seed)

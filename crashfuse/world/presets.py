@@ -110,16 +110,17 @@ def resolve(preset: str | None = None, withhold: str | None = None, strength: st
     if preset is None:
         preset = "paper" if withhold is None else "withheld"
     if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; expected one of {PRESETS}", field="--preset")
+        raise InputError(f"unknown preset {preset!r}; expected one of {PRESETS}", field="preset")
     if preset == "paper":
         if withhold is not None:
-            raise InputError("the paper preset withholds strain_rate and powertrain; use --preset withheld "
-                             "with --withhold", field="--withhold")
+            raise InputError("the paper preset withholds strain_rate and powertrain; use the withheld preset "
+                             "to withhold another effect", field="withhold")
         withheld = PAPER_WITHHELD
     elif withhold is None:
-        raise InputError(f"the withheld preset needs --withhold ({'|'.join(EFFECTS)}|none)", field="--withhold")
+        raise InputError(f"the withheld preset needs an effect to withhold ({'|'.join(EFFECTS)}|none)",
+                         field="withhold")
     else:
-        withheld = () if withhold == "none" else (check_effect(withhold, field="--withhold"),)
+        withheld = () if withhold == "none" else (check_effect(withhold, field="withhold"),)
     params = {**params_at_strength(strength, withheld), **(overrides or {})}
     return Design(preset, tuple(withheld), strength, params)
 

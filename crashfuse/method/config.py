@@ -1,0 +1,197 @@
+"""Every setting of a fit, typed: :class:`MethodConfig` and each input mode's defaults.
+
+A config is frozen and plain (str, int, float, bool, None and tuples of them), so a model file can
+store it and a fold JSON or MLflow run can log it. Bad values raise
+:class:`crashfuse.errors.InputError` naming the setting (the field's own name: ``k``, ``inputs``,
+``random_state`` ...; the command line maps it to its flag).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from crashfuse.errors import InputError
+from crashfuse.method.mixture import GMMGPBias
+from crashfuse.method.projection import INPUTS, TARGETS, VELOCITY
+
+ASSIGNMENTS = ("select", "blend")  # cluster rules of GMMGPBias
+TRENDS = ("zero", "constant", "linear")  # trends of KrigingGP
+
+# The settings that depend on the input mode, and why each mode has its value.
+MODE_DEFAULTS = {
+    "paper": {
+        "target": "absolute",  # as published: the GPs learn the bias in m/s^2
+        "trend": "constant",  # as published: the GPs' constant level
+        "pooled": False,  # as published: each cluster GP on its own points
+        "onset": False,  # the paper inputs carry no velocity, hence no time since contact
+    },
+    "state": {
+        # a rate effect scales the force, so the bias relative to the CAE deceleration; chosen by
+        # grouped leave-one-test-out density on the training tests (docs/method-rollout.md)
+        "target": "relative",
+        # simple kriging (the Kennedy-O'Hagan zero-mean discrepancy): where no test informs the bias,
+        # the correction fades to zero and the prediction to the CAE model's (docs/method-rollout.md, "Trend")
+        "trend": "zero",
+        # cluster GPs on the residual of one pooled GP: a sparse cluster falls back on the pooled
+        # model, not on its few tests (docs/bias-model.md, "Pooled clusters")
+        "pooled": True,
+        # onset transients locked in time move with speed in s: the loading branch also corrects its
+        # held-out error over the time since contact (docs/bias-model.md, "Onset correction")
+        "onset": True,
+    },
+}
+
+# GMMGPBias settings a fit passes through; their defaults are the bias model's own.
+BIAS_SETTINGS = ("n_restarts", "max_fit_points", "max_condition_points", "min_cluster_points",
+                 "theta_max_candidates", "calibrate_variance", "estimate_scatter")
+_BIAS_DEFAULTS = GMMGPBias().get_params()
+
+
+@dataclasses.dataclass(frozen=True)
+class MethodConfig:
+    """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
+
+    ``target``, ``trend``, ``pooled`` and ``onset`` left as None take the input mode's value
+    (``MODE_DEFAULTS``), so a config always holds the values the fit used. To change the input
+    mode of a config, build a new one (``dataclasses.replace`` keeps the old mode's values).
+
+    Parameters
+    ----------
+    k : int
+        Mixture components K of each branch's bias model (>= 1). Clusters the data cannot support
+        are merged into their nearest neighbour: the model keeps fewer GPs, it does not fail.
+    inputs : {"paper", "state"}
+        Bias inputs ``[x, v0, w_f, w_r]`` or ``[x, v, v0, w_f, w_r]``.
+    assignment : {"select", "blend"}
+        Cluster rule of :class:`crashfuse.method.mixture.GMMGPBias`.
+    extra_inputs : bool
+        Append one-hot powertrain and drive to the bias inputs.
+    n_grid : int or None
+        Bias points per test per branch after thinning (>= 2; None: no thinning;
+        :func:`crashfuse.method.projection.bias_data`).
+    use_companion : bool
+        At prediction, use a test's companion CAE run directly when the condition is that test's
+        (the bias data always pair each test with its companion run).
+    random_state : int
+        Seeds the surrogate (when the fit makes one) and both bias models (>= 0).
+    target : {"absolute", "relative"} or None
+        What the GPs learn: the bias in m/s^2, or the bias relative to the CAE deceleration
+        (:func:`crashfuse.method.projection.bias_scale`); the rollout adds ``scale(a_cae) * bias``.
+    trend : {"zero", "constant", "linear"} or None
+        The GPs' trend (:class:`crashfuse.gp.kriging.KrigingGP`).
+    pooled : bool or None
+        With K > 1, fit the cluster GPs on the residual of one GP over all the fold's bias data
+        (:class:`crashfuse.method.mixture.GMMGPBias` ``pooled``).
+    onset : bool or None
+        Correct the loading branch's held-out error over the time since contact early in the pulse
+        (:class:`crashfuse.method.onset.OnsetCorrectedBias`; ``state`` inputs only).
+    weights : bool
+        Axle masses among the bias inputs.
+    velocity : {"linear", "sqrt"}
+        The ``state`` mode's velocity coordinate; ``sqrt``: sign(v) sqrt(|v|), a concave rate
+        coordinate (docs/method-rollout.md).
+    n_restarts, max_fit_points, max_condition_points, min_cluster_points, theta_max_candidates, calibrate_variance, estimate_scatter
+        :class:`crashfuse.method.mixture.GMMGPBias` settings (``BIAS_SETTINGS``), defaults its own.
+
+    Raises
+    ------
+    InputError
+        A value of the wrong type or out of range, naming the setting; ``onset`` with the
+        ``paper`` inputs.
+    """
+
+    k: int = 1
+    inputs: str = "paper"
+    assignment: str = "select"
+    extra_inputs: bool = False
+    n_grid: int | None = 200
+    use_companion: bool = False
+    random_state: int = 0
+    target: str | None = None
+    trend: str | None = None
+    pooled: bool | None = None
+    onset: bool | None = None
+    weights: bool = True
+    velocity: str = "sqrt"
+    n_restarts: int = _BIAS_DEFAULTS["n_restarts"]
+    max_fit_points: int | None = _BIAS_DEFAULTS["max_fit_points"]
+    max_condition_points: int | None = _BIAS_DEFAULTS["max_condition_points"]
+    min_cluster_points: int | None = _BIAS_DEFAULTS["min_cluster_points"]
+    theta_max_candidates: tuple = tuple(_BIAS_DEFAULTS["theta_max_candidates"])
+    calibrate_variance: bool = _BIAS_DEFAULTS["calibrate_variance"]
+    estimate_scatter: bool = _BIAS_DEFAULTS["estimate_scatter"]
+
+    def __post_init__(self):
+        self._set("k", _integer("k", self.k, 1, "K"))
+        _one_of("inputs", self.inputs, INPUTS)
+        for name, value in MODE_DEFAULTS[self.inputs].items():
+            if getattr(self, name) is None:
+                self._set(name, value)
+        _one_of("assignment", self.assignment, ASSIGNMENTS)
+        _one_of("target", self.target, TARGETS)
+        _one_of("trend", self.trend, TRENDS)
+        _one_of("velocity", self.velocity, tuple(VELOCITY))
+        for name in ("extra_inputs", "use_companion", "pooled", "onset", "weights", "calibrate_variance",
+                     "estimate_scatter"):
+            self._set(name, _boolean(name, getattr(self, name)))
+        self._set("n_grid", _integer("n_grid", self.n_grid, 2, "n_grid", optional=True))
+        self._set("random_state", _integer("random_state", self.random_state, 0, "seed"))
+        self._set("n_restarts", _integer("n_restarts", self.n_restarts, 0, "n_restarts"))
+        for name in ("max_fit_points", "max_condition_points", "min_cluster_points"):
+            self._set(name, _integer(name, getattr(self, name), 1, name, optional=True))
+        self._set("theta_max_candidates", _positive_floats("theta_max_candidates", self.theta_max_candidates))
+        if self.onset and self.inputs != "state":
+            raise InputError("the onset correction needs the state inputs (the velocity gives the time since contact)",
+                             field="onset")
+
+    def _set(self, name: str, value) -> None:
+        object.__setattr__(self, name, value)  # normalising a frozen instance's own field, once
+
+    def bias_params(self) -> dict:
+        """The :class:`crashfuse.method.mixture.GMMGPBias` settings besides K, assignment and the seed."""
+        return {"trend": self.trend, "pooled": self.pooled, **{name: getattr(self, name) for name in BIAS_SETTINGS}}
+
+    def changed_bias_settings(self) -> dict:
+        """The ``BIAS_SETTINGS`` whose value is not the bias model's default."""
+        return {name: getattr(self, name) for name in BIAS_SETTINGS
+                if getattr(self, name) != _default(name)}
+
+    def as_dict(self) -> dict:
+        """Every setting by name (tuples stay tuples)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+def _default(name: str):
+    return MethodConfig.__dataclass_fields__[name].default
+
+
+def _one_of(name: str, value, allowed: tuple) -> None:
+    if not isinstance(value, str) or value not in allowed:
+        raise InputError(f"expected one of {allowed}, got {value!r}", field=name)
+
+
+def _boolean(name: str, value) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"expected True or False, got {value!r}", field=name)
+    return bool(value)
+
+
+def _integer(name: str, value, low: int, what: str, optional: bool = False):
+    if optional and value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
+        raise InputError(f"expected an integer {what} >= {low}{' or None' if optional else ''}, got {value!r}",
+                         field=name)
+    return int(value)
+
+
+def _positive_floats(name: str, values) -> tuple:
+    try:
+        out = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        out = ()
+    if not out or not all(np.isfinite(v) and v > 0 for v in out):
+        raise InputError(f"expected a non-empty sequence of positive numbers, got {values!r}", field=name)
+    return out
