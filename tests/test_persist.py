@@ -18,6 +18,7 @@ import pytest
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.io import persist
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import FORMAT, fit_model, load_model, load_surrogate, save_surrogate
 from crashfuse.method.onset import OnsetCorrectedBias
 from crashfuse.method.rollout import predict
@@ -41,7 +42,7 @@ def surrogate(campaign):
 @pytest.fixture(scope="module")
 def model(campaign, surrogate):
     """The richest model: state inputs, K = 2 pooled clusters, the onset correction (a partial)."""
-    return fit_model(campaign, 2, inputs="state", surrogate=surrogate, **FAST)
+    return fit_model(campaign, MethodConfig(k=2, inputs="state", **FAST), surrogate=surrogate)
 
 
 @pytest.fixture()

@@ -14,6 +14,7 @@ from sklearn.preprocessing import StandardScaler
 
 from crashfuse.gp.kriging import KrigingGP
 from crashfuse.method.mixture import GMMGPBias
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import Condition, FittedModel
 from crashfuse.method.onset import OnsetCorrectedBias
 from crashfuse.method.projection import nominal_time
@@ -22,6 +23,7 @@ from crashfuse.signals.pulse import Pulse
 
 TYPES = (
     FittedModel,  # the model file
+    MethodConfig,  # FittedModel.config
     Condition,  # FittedModel.companions: (Condition, Pulse) pairs
     Pulse,
     CAESurrogate,  # the surrogate file; FittedModel.surrogate
