@@ -66,18 +66,40 @@ def _barrier_model(args) -> int:
 
 
 def _world_generate(args) -> int:
+    if args.world == "multibody":
+        return _world_generate_multibody(args)
     from crashfuse.world.effects import parse_overrides
     from crashfuse.world.generate import generate
     from crashfuse.world.presets import resolve
 
-    design = resolve(args.preset, args.withhold, args.strength, parse_overrides(args.effect_param))
+    if args.matrix != "table1":
+        raise InputError("the first world has the Table 1 matrix only; use --world multibody", field="--matrix")
+    if args.withhold is not None and len(args.withhold) > 1:
+        raise InputError("the first world withholds one effect at a time; use --world multibody", field="--withhold")
+    withhold = None if args.withhold is None else args.withhold[0]
+    design = resolve(args.preset, withhold, args.strength, parse_overrides(args.effect_param))
     folder = generate(args.out, design, seed=args.seed, **({} if args.n_cae is None else {"n_cae": args.n_cae}))
     print(f"wrote {folder} (preset {design.preset}, withheld {list(design.withheld)}, seed {args.seed})")
     return 0
 
 
+def _world_generate_multibody(args) -> int:
+    from crashfuse.world.multibody.effects import parse_overrides
+    from crashfuse.world.multibody.generate import generate
+    from crashfuse.world.multibody.presets import N_CAE, resolve
+
+    design = resolve(args.preset, args.withhold, args.strength, parse_overrides(args.effect_param))
+    folder = generate(args.out, design, seed=args.seed, n_cae=args.n_cae or N_CAE, matrix=args.matrix)
+    print(f"wrote {folder} (world multibody, matrix {args.matrix}, preset {design.preset}, "
+          f"withheld {list(design.withheld)}, seed {args.seed})")
+    return 0
+
+
 def _world_calibrate(args) -> int:
-    from crashfuse.world.calibrate import report
+    if args.world == "multibody":
+        from crashfuse.world.multibody.calibrate import report
+    else:
+        from crashfuse.world.calibrate import report
 
     print(report(args.nhtsa, refit=not args.check, max_nfev=args.max_evals))
     return 0
@@ -333,6 +355,12 @@ def _add_barrier_model(sub) -> None:
     s.set_defaults(func=_barrier_model)
 
 
+def _add_world_option(s) -> None:
+    s.add_argument("--world", choices=("first", "multibody"), default="first",
+                   help="first (default: one mass, staged crush law) or multibody (three masses, "
+                        "folding-wave crush zone)")
+
+
 def _add_world(sub) -> None:
     w = sub.add_parser("world", help="the synthetic crash world (validation only)")
     wsub = w.add_subparsers(dest="world_command", required=True, parser_class=_Parser)
@@ -345,9 +373,14 @@ def _add_world_generate(wsub) -> None:
     s.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     s.add_argument("--seed", type=_seed, default=0, help="seed of the CAE design and the test noise (default 0)")
     s.add_argument("--preset", default=None, help="paper (default) or withheld (needs --withhold)")
-    s.add_argument("--withhold", default=None, help="effect the tests carry and the CAE does not, or none")
+    _add_world_option(s)
+    s.add_argument("--matrix", choices=("table1", "wide"), default="table1",
+                   help="test matrix: the paper's Table 1 (default) or 11 tests over 10-37 mph (multibody only)")
+    s.add_argument("--withhold", nargs="+", default=None, metavar="EFFECT",
+                   help="effect(s) the tests carry and the CAE does not, or none (several: multibody only)")
     s.add_argument("--strength", default="realistic", help="realistic (default) or subtle")
-    s.add_argument("--n-cae", type=_positive, default=None, help="Latin-hypercube CAE runs (default 1009)")
+    s.add_argument("--n-cae", type=_positive, default=None,
+                   help="Latin-hypercube CAE runs (default 1009; multibody 400)")
     s.add_argument("--effect-param", action="append", default=[], metavar="NAME=VALUE",
                    help="set an effect parameter in SI, e.g. damping.c=2000 (repeatable)")
     s.set_defaults(func=_world_generate)
@@ -356,6 +389,7 @@ def _add_world_generate(wsub) -> None:
 def _add_world_calibrate(wsub) -> None:
     s = wsub.add_parser("calibrate", help="fit the test simulator to NHTSA 10146 and print the side-by-side table")
     s.add_argument("nhtsa", nargs="?", default=_DEFAULT_NHTSA, help="NHTSA EV5 folder of test 10146")
+    _add_world_option(s)
     s.add_argument("--check", action="store_true", help="only compare the committed defaults, no fit")
     s.add_argument("--max-evals", type=int, default=60, help="simulator evaluations for the fit (default 60)")
     s.set_defaults(func=_world_calibrate)

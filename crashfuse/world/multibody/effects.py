@@ -1,0 +1,114 @@
+"""The second world's forms of the five catalogue effects (same names as the first world's).
+
+Every parameter is ``effect.name`` in SI, finite and >= 0 (> 0 for those in :data:`POSITIVE`).
+``c`` is the crush-zone compression (m), ``c'`` its rate (m/s), ``P`` the crush force (N):
+
+``damping``
+    Quadratic crush damping ``F_d = c2 c' |c'| min(1, c / 0.10 m)`` added to ``P`` (air and
+    fluids squeezed out of the front end, foam). ``damping.c2`` in N s^2/m^2.
+``strain_rate``
+    Rate hardening as a power law in the crush speed on the loading branch,
+    ``P = P_static (1 + a (c' / v_ref)^p)`` for c' > 0. ``strain_rate.a`` (-), ``v_ref`` (m/s),
+    ``p`` (-).
+``powertrain``
+    Engine-to-barrier contact: once the engine's forward travel exceeds the gap (``gap_type1`` /
+    ``gap_type2`` m, minus ``gap_awd`` m for AWD) it is pushed back by a compression-only
+    spring-damper ``C = max(0, k_contact (x_e - gap) + c_contact v_e)``, and the body drives into
+    the stopped engine through its mounts: a secondary pulse in the faster tests only - the slower
+    tests never close the gap and are exactly unchanged. ``k_contact`` N/m, ``c_contact`` N s/m.
+    Without the effect the engine rides freely on its mounts (the mounts are part of the vehicle).
+``unloading``
+    Exponential unloading with a residual set: with ``r = c_max - c`` the spring-back below the
+    largest crush, ``delta = d0 + P(c_max) / k`` and ``r_set = set_ratio * delta``,
+    ``P = P(c_max) (exp(-r/delta) - exp(-r_set/delta)) / (1 - exp(-r_set/delta))`` for
+    ``r < r_set``, 0 beyond; reloading follows the same curve. ``unloading.k`` N/m (fitted),
+    ``d0`` m, ``set_ratio`` (-). Without it the base straight line ``structure.k_unload``.
+``mass``
+    Unmodelled attached mass (cargo, battery modules, test equipment) ``mass.m`` kg on a compliant
+    link to the body: spring ``mass.k`` N/m and damper ``mass.c`` N s/m.
+"""
+
+from __future__ import annotations
+
+import math
+
+from crashfuse.errors import InputError
+
+EFFECTS = ("damping", "strain_rate", "powertrain", "unloading", "mass")
+
+# Realistic magnitudes: chosen physical values, except `unloading.k`, fitted with the structure's
+# force levels to NHTSA 10146 (crashfuse.world.multibody.calibrate).
+REALISTIC = {
+    "damping.c2": 300.0,
+    "strain_rate.a": 0.20,
+    "strain_rate.v_ref": 10.0,
+    "strain_rate.p": 0.7,
+    "powertrain.gap_type1": 0.62,
+    "powertrain.gap_type2": 0.58,
+    "powertrain.gap_awd": 0.02,
+    "powertrain.k_contact": 1.0e7,
+    "powertrain.c_contact": 5.0e4,
+    "unloading.k": 1.896e9,
+    "unloading.d0": 0.006,
+    "unloading.set_ratio": 3.0,
+    "mass.m": 150.0,
+    "mass.k": 5.9e5,
+    "mass.c": 1.9e3,
+}
+
+# `--strength subtle`: the magnitudes that change when an effect is made subtle (the rest stay
+# realistic), chosen so that withholding one lowers the mean CAE-vs-test ISO by a few hundredths.
+SUBTLE = {
+    "damping": {"damping.c2": 150.0},
+    "strain_rate": {"strain_rate.a": 0.10},
+    "powertrain": {"powertrain.k_contact": 3.0e6, "powertrain.c_contact": 2.0e4},
+    "unloading": {"unloading.d0": 0.003},
+    "mass": {"mass.m": 80.0, "mass.k": 7.1e5, "mass.c": 2.3e3},
+}
+
+STRENGTHS = ("realistic", "subtle")
+# Parameters that divide or set a scale: zero is as invalid as negative.
+POSITIVE = ("strain_rate.v_ref", "strain_rate.p", "unloading.k", "unloading.set_ratio", "mass.k")
+
+
+def check_effect(name: str, field: str = "--withhold") -> str:
+    """``name`` if it is a catalogue effect, else InputError naming ``field``."""
+    if name not in EFFECTS:
+        raise InputError(f"unknown effect {name!r}; expected one of {', '.join(EFFECTS)}", field=field)
+    return name
+
+
+def effect_params(strength: str = "realistic", subtle_effects=()) -> dict:
+    """Every catalogue parameter ``{"effect.param": value}`` (SI) at a named strength.
+
+    With ``strength="subtle"`` only ``subtle_effects`` take their subtle magnitudes.
+    """
+    if strength not in STRENGTHS:
+        raise InputError(f"unknown strength {strength!r}; expected one of {', '.join(STRENGTHS)}", field="--strength")
+    params = dict(REALISTIC)
+    if strength == "subtle":
+        for name in subtle_effects:
+            params.update(SUBTLE[check_effect(name)])
+    return params
+
+
+def parse_overrides(items) -> dict:
+    """``["effect.param=value", ...]`` (``--effect-param``) as a dict of floats; InputError if bad."""
+    out = {}
+    for item in items or ():
+        name, sep, text = (part.strip() for part in item.partition("="))
+        if not sep:
+            raise InputError(f"expected name=value, got {item!r}", field="--effect-param")
+        effect = check_effect(name.split(".")[0], field="--effect-param")
+        if name not in REALISTIC:
+            known = ", ".join(k for k in REALISTIC if k.startswith(effect + "."))
+            raise InputError(f"unknown parameter {name!r}; expected one of {known}", field="--effect-param")
+        try:
+            value = float(text)
+        except ValueError:
+            raise InputError(f"{name}: expected a number, got {text!r}", field="--effect-param") from None
+        if not math.isfinite(value) or value < 0 or (value == 0 and name in POSITIVE):
+            need = "> 0" if name in POSITIVE else ">= 0"
+            raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="--effect-param")
+        out[name] = value
+    return out

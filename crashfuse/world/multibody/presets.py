@@ -1,0 +1,116 @@
+"""Presets and test matrices of the second world: who carries which effect, at which conditions.
+
+As in the first world, the test side carries every catalogue effect and a *withheld* effect is
+absent from the CAE (every other effect is on both sides with the same parameters):
+
+* ``paper``: withheld = [strain_rate, powertrain];
+* ``withheld`` with ``withhold=[EFFECT, ...]``: those effects (one, or a pair, ...); ``["none"]``
+  withholds nothing (the control: tests differ from CAE only by the measurement chain).
+
+Test matrices: ``table1`` is the paper's Table 1 (shared with the first world); ``wide`` spreads
+11 tests over 10-37 mph with Table 1's three configurations, so that the slow tests' rebound falls
+inside the 0-60 ms scoring window and the fastest lies beyond the paper's 35.2 mph.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pandas as pd
+
+from crashfuse.errors import InputError
+from crashfuse.units import LB, MPH
+from crashfuse.world.multibody.effects import EFFECTS, check_effect, effect_params
+from crashfuse.world.presets import TABLE1, table1_tests
+
+PRESETS = ("paper", "withheld")
+PAPER_WITHHELD = ("strain_rate", "powertrain")
+MATRICES = ("table1", "wide")
+N_CAE = 400
+WIDE_SPEEDS_MPH = (10.0, 11.5, 13.0, 16.0, 19.0, 22.0, 25.0, 28.0, 31.0, 34.0, 37.0)
+# Table 1's configurations in turn, each with its mean Table 1 axle masses.
+WIDE_CONFIGS = (("Type I", "FWD"), ("Type II", "AWD"), ("Type I", "AWD"))
+
+
+@dataclasses.dataclass(frozen=True)
+class Design:
+    """A preset resolved: withheld effects, strength, every effect parameter (SI)."""
+
+    preset: str
+    withheld: tuple
+    strength: str
+    params: dict
+
+    @property
+    def test_effects(self) -> tuple:
+        """Effects present in the physical tests (all of the catalogue)."""
+        return EFFECTS
+
+    @property
+    def cae_effects(self) -> tuple:
+        """Effects present in the CAE runs."""
+        return tuple(e for e in EFFECTS if e not in self.withheld)
+
+
+def resolve(preset: str | None = None, withhold=None, strength: str = "realistic",
+            overrides: dict | None = None) -> Design:
+    """Resolve the command-line choices into a :class:`Design`.
+
+    Parameters
+    ----------
+    preset : {"paper", "withheld"} or None
+        None means ``withheld`` if ``withhold`` is given, else ``paper``.
+    withhold : str or sequence of str, optional
+        Catalogue effects withheld from the CAE (distinct), or ``"none"`` alone.
+    strength : {"realistic", "subtle"}
+        Magnitude of the withheld effects (shared effects stay realistic).
+    overrides : dict, optional
+        ``effect.param`` values replacing the strength's.
+    """
+    names = [withhold] if isinstance(withhold, str) else list(withhold or [])
+    if preset is None:
+        preset = "withheld" if names else "paper"
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}", field="--preset")
+    if preset == "paper":
+        if names:
+            raise InputError("the paper preset withholds strain_rate and powertrain; use --preset withheld "
+                             "with --withhold", field="--withhold")
+        withheld = PAPER_WITHHELD
+    elif not names:
+        raise InputError(f"the withheld preset needs --withhold ({'|'.join(EFFECTS)}|none)", field="--withhold")
+    elif "none" in names:
+        if len(names) > 1:
+            raise InputError(f"'none' withholds nothing and stands alone, got {' '.join(names)}", field="--withhold")
+        withheld = ()
+    else:
+        withheld = tuple(check_effect(n) for n in names)
+        if len(set(withheld)) < len(withheld):
+            raise InputError(f"expected distinct effects, got {' '.join(names)}", field="--withhold")
+    params = {**effect_params(strength, withheld), **(overrides or {})}
+    return Design(preset, withheld, strength, params)
+
+
+def wide_tests() -> pd.DataFrame:
+    """The wide matrix: 11 tests over 10-37 mph, same columns as :func:`matrix_tests`."""
+    rows = []
+    for i, mph in enumerate(WIDE_SPEEDS_MPH):
+        pt, drive = WIDE_CONFIGS[i % len(WIDE_CONFIGS)]
+        same = TABLE1[(TABLE1["powertrain"] == pt) & (TABLE1["drive"] == drive)]
+        rows.append((f"T{i + 1:02d}", mph * MPH, same["front_lb"].mean() * LB, same["rear_lb"].mean() * LB, pt, drive))
+    return pd.DataFrame(rows, columns=["run_id", "v0_mps", "front_weight_kg", "rear_weight_kg", "powertrain", "drive"])
+
+
+def matrix_tests(name: str) -> pd.DataFrame:
+    """Tests of a named matrix in SI: run_id, v0_mps, front_weight_kg, rear_weight_kg, powertrain, drive."""
+    if name == "table1":
+        return table1_tests()
+    if name == "wide":
+        return wide_tests()
+    raise InputError(f"unknown test matrix {name!r}; expected one of {', '.join(MATRICES)}", field="--matrix")
+
+
+def configuration(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean arrays (Type II powertrain, AWD) of a conditions frame."""
+    return (frame["powertrain"] == "Type II").to_numpy(), (frame["drive"] == "AWD").to_numpy()
