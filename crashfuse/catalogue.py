@@ -75,14 +75,21 @@ class Effect:
 CATALOGUE = {e.name: e for e in (
     Effect("damping", "viscous crush damping: a crush force proportional to the crush speed, on loading and "
            "unloading", (
-               Quantity("c", "N s/m", "damping coefficient: crush force per unit crush speed", headline=True),)),
+               Quantity("c", "N s/m", f"damping force per unit crush speed at the reference crush speed "
+                        f"{V_REF:g} m/s (the coefficient of a linear law)", headline=True),
+               Quantity("quadratic_coefficient", "N s^2/m^2", "damping force per squared crush speed (a "
+                        "quadratic law: fluids and foam squeezed out)"))),
     Effect("strain_rate", "rate hardening of the crush strength on loading: the structure is stronger the faster "
            "it is crushed, so the gap grows with impact speed", (
                Quantity("gain_at_15mps", "-", f"fractional increase of the crush strength over the static one at "
                         f"the reference crush speed {V_REF:g} m/s", headline=True),
                Quantity("doubling_speed", "m/s", "crush speed at which the strength is twice the static one"),
                Quantity("inverse_rate_exponent", "-", "how slowly the increase grows with crush speed: it grows "
-                        "as the crush speed to the power 1/this"))),
+                        "as the crush speed to the power 1/this"),
+               Quantity("rate_exponent", "-", "the increase grows as the crush speed to this power"),
+               Quantity("gain_at_reference_speed", "-", "fractional increase of the crush strength at a law's own "
+                        "reference crush speed"),
+               Quantity("reference_speed", "m/s", "a law's own reference crush speed"))),
     Effect("powertrain", "a powertrain mass riding in the body is stopped by the barrier once the crush closes "
            "its gap; the body then drives into it through its mounts: a secondary pulse", (
                Quantity("mass", "kg", "arrested mass: the powertrain mass the barrier stops", headline=True,
@@ -101,9 +108,13 @@ CATALOGUE = {e.name: e for e in (
                         "beams)"),
                Quantity("springback_stiffness", "N/m", "peak force per unit of the spring-back that grows with it"),
                Quantity("unloading_exponent", "-", "shape of the force's fall over the spring-back (1: linear; "
-                        "larger: falls faster at first)"))),
+                        "larger: falls faster at first)"),
+               Quantity("zero_force_travel_ratio", "-", "travel from maximum crush to zero force, as a multiple "
+                        "of the spring-back scale (an exponential law's residual set)"))),
     Effect("mass", "the decelerating mass exceeds the nominal test weight (ballast, instrumentation, cables)", (
-        Quantity("extra", "kg", "mass decelerated beyond the nominal test weight", headline=True),)),
+        Quantity("extra", "kg", "mass decelerated beyond the nominal test weight", headline=True),
+        Quantity("link_stiffness", "N/m", "stiffness of a compliant link carrying the extra mass"),
+        Quantity("link_damping", "N s/m", "viscous damping of that link"))),
 )}
 
 EFFECTS = tuple(CATALOGUE)

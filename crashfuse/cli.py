@@ -541,7 +541,7 @@ _FLAGS = {
     "report": {"score": "--score"},
     "plot summary": {"score": "--score", "window": "--window"},
     "world generate": {"preset": "--preset", "withhold": "--withhold", "strength": "--strength",
-                       "overrides": "--effect-param", "seed": "--seed"},
+                       "overrides": "--effect-param", "seed": "--seed", "matrix": "--matrix", "n_cae": "--n-cae"},
     "world calibrate": {"max_nfev": "--max-evals"},
     "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds"},
 }

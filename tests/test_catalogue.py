@@ -14,10 +14,11 @@ from crashfuse.catalogue import CATALOGUE, EFFECTS, check_declaration, check_eff
 from crashfuse.diagnosis import laws
 from crashfuse.errors import InputError
 from crashfuse.world import effects as world
+from crashfuse.world.multibody import effects as multibody
 
 REPO = Path(__file__).resolve().parents[1]
 LABELS = ("Type I", "Type II")
-SIDES = {"world": world.QUANTITIES, "diagnosis": laws.QUANTITIES}
+SIDES = {"world": world.QUANTITIES, "multibody world": multibody.QUANTITIES, "diagnosis": laws.QUANTITIES}
 
 
 def _effects_of(declaration) -> set:
@@ -46,10 +47,11 @@ def test_a_law_on_one_side_only_fails():
             check_declaration({**declaration, "damping.c": "damping_ratio"}, side)
 
 
-def test_world_declares_every_parameter_it_uses():
-    assert set(world.REALISTIC) == set(world.QUANTITIES)
-    assert set(world.params_at_strength("subtle")) == set(world.QUANTITIES)
-    assert set(world.POSITIVE) <= set(world.QUANTITIES)
+@pytest.mark.parametrize("laws_of", [world, multibody], ids=["world", "multibody world"])
+def test_world_declares_every_parameter_it_uses(laws_of):
+    assert set(laws_of.REALISTIC) == set(laws_of.QUANTITIES)
+    assert set(laws_of.params_at_strength("subtle", EFFECTS)) == set(laws_of.QUANTITIES)
+    assert set(laws_of.POSITIVE) <= set(laws_of.QUANTITIES)
 
 
 @pytest.mark.parametrize("effect", EFFECTS)
@@ -66,8 +68,18 @@ def test_diagnosis_declares_every_parameter_it_fits(effect):
 def test_both_sides_report_the_catalogue_headlines(effect):
     tests = pd.DataFrame({"powertrain": ["Type I", "Type II", "Type II"], "drive": ["FWD", "AWD", "AWD"]})
     true = world.headline(effect, world.REALISTIC, tests)
+    second = multibody.headline(effect, multibody.REALISTIC, {"Type I": 170.0, "Type II": 245.0})
     fitted = laws.headline(effect, {p.name: p.start[0] for p in laws.parameters(effect, LABELS)})
-    assert set(true) == set(fitted) == _headline_keys(effect)
+    assert set(true) == set(second) == set(fitted) == _headline_keys(effect)
+
+
+def test_second_world_headlines_follow_its_own_laws():
+    """Law-neutral headlines from the power-law rate hardening and the quadratic damping."""
+    p = {**multibody.REALISTIC, "strain_rate.a": 0.2, "strain_rate.v_ref": 10.0, "strain_rate.p": 0.5,
+         "damping.c2": 300.0}
+    gain = multibody.headline("strain_rate", p, {})["strain_rate.gain_at_15mps"]
+    assert gain == pytest.approx(0.2 * 1.5**0.5)
+    assert multibody.headline("damping", p, {})["damping.c"] == pytest.approx(300.0 * catalogue.V_REF)
 
 
 def test_catalogue_entries():

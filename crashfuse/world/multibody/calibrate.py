@@ -113,7 +113,7 @@ def comparison(real: Pulse, params: dict) -> pd.DataFrame:
 def report(folder, refit: bool = True, max_nfev: int = 80) -> str:
     """The calibration report: committed defaults vs the test and, with ``refit``, the new fit."""
     if max_nfev < 1:
-        raise InputError(f"expected at least 1 simulator evaluation, got {max_nfev}", field="--max-evals")
+        raise InputError(f"expected at least 1 simulator evaluation, got {max_nfev}", field="max_nfev")
     real = read_nhtsa(folder)
     fmt = {"float_format": lambda x: f"{x:.3f}", "index": False}
     lines = ["NHTSA 10146 vs the multibody world's test simulator (every effect), committed defaults:",

@@ -32,9 +32,10 @@ from __future__ import annotations
 
 import math
 
-from crashfuse.errors import InputError
+import numpy as np
 
-EFFECTS = ("damping", "strain_rate", "powertrain", "unloading", "mass")
+from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect, key
+from crashfuse.errors import InputError
 
 # Realistic magnitudes: chosen physical values, except `unloading.k`, fitted with the structure's
 # force levels to NHTSA 10146 (crashfuse.world.multibody.calibrate).
@@ -66,29 +67,42 @@ SUBTLE = {
     "mass": {"mass.m": 80.0, "mass.k": 7.1e5, "mass.c": 2.3e3},
 }
 
+# Which catalogue quantity each parameter is (crashfuse.catalogue): the laws differ from the first
+# world's, the meanings are shared.
+QUANTITIES = {
+    "damping.c2": "quadratic_coefficient",
+    "strain_rate.a": "gain_at_reference_speed",
+    "strain_rate.v_ref": "reference_speed",
+    "strain_rate.p": "rate_exponent",
+    "powertrain.gap_type1": "gap",
+    "powertrain.gap_type2": "gap",
+    "powertrain.gap_awd": "gap",
+    "powertrain.k_contact": "contact_stiffness",
+    "powertrain.c_contact": "contact_damping",
+    "unloading.k": "springback_stiffness",
+    "unloading.d0": "springback_floor",
+    "unloading.set_ratio": "zero_force_travel_ratio",
+    "mass.m": "extra",
+    "mass.k": "link_stiffness",
+    "mass.c": "link_damping",
+}
+
 STRENGTHS = ("realistic", "subtle")
 # Parameters that divide or set a scale: zero is as invalid as negative.
 POSITIVE = ("strain_rate.v_ref", "strain_rate.p", "unloading.k", "unloading.set_ratio", "mass.k")
 
 
-def check_effect(name: str, field: str = "--withhold") -> str:
-    """``name`` if it is a catalogue effect, else InputError naming ``field``."""
-    if name not in EFFECTS:
-        raise InputError(f"unknown effect {name!r}; expected one of {', '.join(EFFECTS)}", field=field)
-    return name
-
-
-def effect_params(strength: str = "realistic", subtle_effects=()) -> dict:
+def params_at_strength(strength: str = "realistic", subtle_effects=()) -> dict:
     """Every catalogue parameter ``{"effect.param": value}`` (SI) at a named strength.
 
     With ``strength="subtle"`` only ``subtle_effects`` take their subtle magnitudes.
     """
     if strength not in STRENGTHS:
-        raise InputError(f"unknown strength {strength!r}; expected one of {', '.join(STRENGTHS)}", field="--strength")
+        raise InputError(f"unknown strength {strength!r}; expected one of {', '.join(STRENGTHS)}", field="strength")
     params = dict(REALISTIC)
     if strength == "subtle":
         for name in subtle_effects:
-            params.update(SUBTLE[check_effect(name)])
+            params.update(SUBTLE[check_effect(name, field="withhold")])
     return params
 
 
@@ -98,17 +112,48 @@ def parse_overrides(items) -> dict:
     for item in items or ():
         name, sep, text = (part.strip() for part in item.partition("="))
         if not sep:
-            raise InputError(f"expected name=value, got {item!r}", field="--effect-param")
-        effect = check_effect(name.split(".")[0], field="--effect-param")
+            raise InputError(f"expected name=value, got {item!r}", field="overrides")
+        effect = check_effect(name.split(".")[0], field="overrides")
         if name not in REALISTIC:
             known = ", ".join(k for k in REALISTIC if k.startswith(effect + "."))
-            raise InputError(f"unknown parameter {name!r}; expected one of {known}", field="--effect-param")
+            raise InputError(f"unknown parameter {name!r}; expected one of {known}", field="overrides")
         try:
             value = float(text)
         except ValueError:
-            raise InputError(f"{name}: expected a number, got {text!r}", field="--effect-param") from None
+            raise InputError(f"{name}: expected a number, got {text!r}", field="overrides") from None
         if not math.isfinite(value) or value < 0 or (value == 0 and name in POSITIVE):
             need = "> 0" if name in POSITIVE else ">= 0"
-            raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="--effect-param")
+            raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="overrides")
         out[name] = value
     return out
+
+
+def headline(effect: str, params: dict, engine_mass: dict) -> dict:
+    """The catalogue's headline quantities of ``effect`` under these laws and parameters, SI.
+
+    Parameters
+    ----------
+    effect : str
+    params : dict
+        The effect's parameters ``{"effect.param": value}`` (at least those of ``effect``).
+    engine_mass : dict of str to float
+        Arrested engine mass (kg) per powertrain label, averaged over the tests of that label
+        (the engine belongs to the vehicle here; the effect is its contact with the barrier).
+
+    Returns
+    -------
+    dict
+        ``{reported name: value}`` (:func:`crashfuse.catalogue.key`).
+    """
+    p = params
+    if check_effect(effect) == "damping":  # the quadratic law's force per crush speed at V_REF
+        return {key(effect, "c"): p["damping.c2"] * V_REF}
+    if effect == "strain_rate":
+        gain = p["strain_rate.a"] * (V_REF / p["strain_rate.v_ref"]) ** p["strain_rate.p"]
+        return {key(effect, "gain_at_15mps"): gain}
+    if effect == "unloading":  # travel to zero force after a peak of F_REF
+        return {key(effect, "springback_at_500kN"): p["unloading.set_ratio"] * (p["unloading.d0"] + F_REF / p["unloading.k"])}
+    if effect == "powertrain":
+        return {key(effect, "mass", label): float(np.mean(m)) for label, m in engine_mass.items()}
+    return {key(effect, "extra"): p["mass.m"]}
+

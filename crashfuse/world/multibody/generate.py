@@ -4,7 +4,7 @@ The campaign: the tests of a matrix (``table1`` or ``wide``, T01..T11) from the 
 (CFC 60, 10 kHz, 0-100 ms), each with a companion CAE run at its condition (CT01.., named in
 ``cae_run_id``), and ``n_cae`` CAE runs over the shared seeded Latin hypercube (C0001..). CAE
 pulses are raw history output (``cfc = raw`` in conditions.csv, 10 kHz, -10 to 120 ms); the
-campaign reader filters them to CFC 60. Written through :func:`crashfuse.io.campaign.write_campaign`.
+campaign reader filters them to CFC 60. Written through :func:`crashfuse.io.campaign_write.write_campaign`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ import numpy as np
 import pandas as pd
 
 from crashfuse.errors import InputError
-from crashfuse.io.campaign import Campaign, write_campaign
+from crashfuse.io.campaign import Campaign
+from crashfuse.io.campaign_write import write_campaign
 from crashfuse.signals.pulse import Pulse
 from crashfuse.world.multibody import WORLD_NAME, WORLD_VERSION
 from crashfuse.world.multibody.presets import N_CAE, Design, configuration, matrix_tests
@@ -63,7 +64,7 @@ def build(design: Design, seed: int = 0, n_cae: int = N_CAE, matrix: str = "tabl
     """
     seed = _check_seed(seed)
     if isinstance(n_cae, bool) or not isinstance(n_cae, (int, np.integer)) or n_cae < 0:
-        raise InputError(f"expected a count >= 0, got {n_cae!r}", field="--n-cae")
+        raise InputError(f"expected a count >= 0, got {n_cae!r}", field="n_cae")
     params = all_params(design)
     tests = matrix_tests(matrix)
     companions = tests.assign(run_id=["C" + r for r in tests["run_id"]])
@@ -118,7 +119,7 @@ def generate(out: str | os.PathLike, design: Design, seed: int = 0, n_cae: int =
              matrix: str = "table1") -> Path:
     """Write the campaign folder ``out`` (mph, lb, g) with ``world.json``, atomically.
 
-    :func:`crashfuse.io.campaign.write_campaign` refuses a non-empty folder and writes the answer
+    :func:`crashfuse.io.campaign_write.write_campaign` refuses a non-empty folder and writes the answer
     key in the same temporary folder, so a campaign never appears without it.
     """
     campaign, world = build(design, seed, n_cae, matrix)
@@ -128,5 +129,5 @@ def generate(out: str | os.PathLike, design: Design, seed: int = 0, n_cae: int =
 
 def _check_seed(seed) -> int:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"expected an integer seed >= 0, got {seed!r}", field="--seed")
+        raise InputError(f"expected an integer seed >= 0, got {seed!r}", field="seed")
     return int(seed)

@@ -21,7 +21,8 @@ import pandas as pd
 
 from crashfuse.errors import InputError
 from crashfuse.units import LB, MPH
-from crashfuse.world.multibody.effects import EFFECTS, check_effect, effect_params
+from crashfuse.catalogue import EFFECTS, check_effect
+from crashfuse.world.multibody.effects import params_at_strength
 from crashfuse.world.presets import TABLE1, table1_tests
 
 PRESETS = ("paper", "withheld")
@@ -72,23 +73,23 @@ def resolve(preset: str | None = None, withhold=None, strength: str = "realistic
     if preset is None:
         preset = "withheld" if names else "paper"
     if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}", field="--preset")
+        raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}", field="preset")
     if preset == "paper":
         if names:
-            raise InputError("the paper preset withholds strain_rate and powertrain; use --preset withheld "
-                             "with --withhold", field="--withhold")
+            raise InputError("the paper preset withholds strain_rate and powertrain; use the withheld preset "
+                             "to withhold other effects", field="withhold")
         withheld = PAPER_WITHHELD
     elif not names:
-        raise InputError(f"the withheld preset needs --withhold ({'|'.join(EFFECTS)}|none)", field="--withhold")
+        raise InputError(f"the withheld preset needs effects to withhold ({'|'.join(EFFECTS)}|none)", field="withhold")
     elif "none" in names:
         if len(names) > 1:
-            raise InputError(f"'none' withholds nothing and stands alone, got {' '.join(names)}", field="--withhold")
+            raise InputError(f"'none' withholds nothing and stands alone, got {' '.join(names)}", field="withhold")
         withheld = ()
     else:
-        withheld = tuple(check_effect(n) for n in names)
+        withheld = tuple(check_effect(n, field="withhold") for n in names)
         if len(set(withheld)) < len(withheld):
-            raise InputError(f"expected distinct effects, got {' '.join(names)}", field="--withhold")
-    params = {**effect_params(strength, withheld), **(overrides or {})}
+            raise InputError(f"expected distinct effects, got {' '.join(names)}", field="withhold")
+    params = {**params_at_strength(strength, withheld), **(overrides or {})}
     return Design(preset, withheld, strength, params)
 
 
@@ -108,7 +109,7 @@ def matrix_tests(name: str) -> pd.DataFrame:
         return table1_tests()
     if name == "wide":
         return wide_tests()
-    raise InputError(f"unknown test matrix {name!r}; expected one of {', '.join(MATRICES)}", field="--matrix")
+    raise InputError(f"unknown test matrix {name!r}; expected one of {', '.join(MATRICES)}", field="matrix")
 
 
 def configuration(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
