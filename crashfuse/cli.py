@@ -101,7 +101,8 @@ def _world_calibrate(args) -> int:
     else:
         from crashfuse.world.calibrate import report
 
-    print(report(args.nhtsa, refit=not args.check, max_nfev=args.max_evals))
+    budget = {} if args.max_evals is None else {"max_nfev": args.max_evals}  # else the world's own default
+    print(report(args.nhtsa, refit=not args.check, **budget))
     return 0
 
 
@@ -391,7 +392,8 @@ def _add_world_calibrate(wsub) -> None:
     s.add_argument("nhtsa", nargs="?", default=_DEFAULT_NHTSA, help="NHTSA EV5 folder of test 10146")
     _add_world_option(s)
     s.add_argument("--check", action="store_true", help="only compare the committed defaults, no fit")
-    s.add_argument("--max-evals", type=int, default=60, help="simulator evaluations for the fit (default 60)")
+    s.add_argument("--max-evals", type=int, default=None,
+                   help="simulator evaluations for the fit (default: first 60, multibody 80)")
     s.set_defaults(func=_world_calibrate)
 
 

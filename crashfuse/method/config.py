@@ -29,7 +29,7 @@ MODE_DEFAULTS = {
     },
     "state": {
         # a rate effect scales the force, so the bias relative to the CAE deceleration; chosen by
-        # grouped leave-one-test-out density on the training tests (docs/method-rollout.md)
+        # grouped leave-one-test-out density on the training tests (docs/decisions.md)
         "target": "relative",
         # simple kriging (the Kennedy-O'Hagan zero-mean discrepancy): where no test informs the bias,
         # the correction fades to zero and the prediction to the CAE model's (docs/method-rollout.md, "Trend")
