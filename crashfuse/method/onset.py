@@ -92,7 +92,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         res = self.base_.grouped_residuals(X[rows], y[rows], groups[rows])
         if res is not None:
             # Every early row enters the likelihood: a 1-D GP on a few hundred rows is cheap, and on a
-            # 300-row subset some seeds' restarts stopped in a flat optimum (no correction).
+            # 300-row subset some seeds' restarts stop in a flat optimum (no correction).
             gp = KrigingGP(trend="zero", max_fit_points=None, estimate_scatter=False,
                            blas_threads=self.blas_threads, random_state=self.random_state)
             self.onset_gp_ = gp.fit(t[early, None], res[early], groups[rows][early])
