@@ -35,10 +35,11 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
     Parameters
     ----------
     base : estimator
-        The bias model (:class:`GMMGPBias`), cloned and fitted on all rows.
+        The bias model (:class:`crashfuse.method.mixture.GMMGPBias`), cloned and fitted on all rows.
     time : callable
         Maps inputs ``X`` (m, d) to the nominal time since contact in s, shape (m,)
-        (:func:`crashfuse.method.projection.nominal_time`); picklable.
+        (:func:`crashfuse.method.projection.nominal_time`); a function listed in
+        :mod:`crashfuse.method.files`, or a ``functools.partial`` of one, so that a model file can store it.
     window : (float, float)
         Times (s) where the correction starts to fade and where it is gone.
     max_rows : int
