@@ -1,5 +1,6 @@
 """Full leave-one-test-out evaluation on the `paper` campaign: wall time, peak memory, the
-Table-2-shaped ISO/TS 18571 result for both input modes, band coverage and the issue's targets.
+Table-2-shaped ISO/TS 18571 result for both input modes, band coverage and the targets (wall time
+<= 300 s on 2 jobs, <= 4 GiB per process, coverage 0.90-0.99, each K's margin against CAE).
 
     .venv/bin/python benchmarks/bench_evaluate.py [CAMPAIGN] [--out DIR] [--jobs 2] [--samples 1000]
                                                   [--use-companion]
@@ -46,7 +47,7 @@ def _cpu_seconds() -> float:
     """User + system CPU seconds of this process and of its children, live (the joblib workers) or reaped.
 
     Wall time on the shared machine depends on what else runs; the CPU seconds of the evaluation
-    do much less, so before/after comparisons use them.
+    do much less, so comparisons between runs use them.
     """
     me = psutil.Process()
     reaped = resource.getrusage(resource.RUSAGE_CHILDREN)

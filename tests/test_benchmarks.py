@@ -1,4 +1,4 @@
-"""The benchmark scripts still run: their functions on a tiny campaign (figures not checked, shapes are)."""
+"""The benchmark scripts run: their functions on a tiny campaign (figures not checked, shapes are)."""
 
 from __future__ import annotations
 

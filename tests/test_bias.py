@@ -463,7 +463,7 @@ def test_scatter_of_a_model_fitted_before_it_existed_is_a_clear_error(two_regime
 # ------------------------------------------------------------------ fast paths
 def test_likelihood_linear_algebra_is_bit_identical_to_the_plain_forms():
     """The symmetric correlation, the in-place factor and the mirrored inverse give exactly the bits
-    of the plain expressions they replace: the optimiser's path, and so every score, depends on them."""
+    of the plain expressions they stand for: the optimiser's path, and so every score, depends on them."""
     from scipy.linalg import cholesky, lapack
 
     from crashfuse.gp.kernels import correlation, factor_with_nugget, inverse_from_factor, self_correlation

@@ -130,7 +130,8 @@ def test_withheld_damping_is_found_and_recovered(damping_world):
 
 def test_the_cae_speed_sensitivity_does_not_depend_on_the_cae_design():
     """Two seeds: the same tests and companion runs, different 60-run designs. The CAE force's slope
-    in crush speed (regression over all runs) agrees; surrogate secants disagreed by up to 2.6x."""
+    in crush speed (regression over all runs) agrees, as secants between surrogate curves do not
+    (docs/decisions.md, section 15)."""
     from crashfuse.diagnosis.laws import crush_force_rate
 
     s = np.array([0.05, 0.2, 0.45])
@@ -200,7 +201,7 @@ def test_small_validation_matrix(tmp_path):
 
 
 def test_paper_campaign_verdict():
-    """Issue 6: on the paper preset the verdict is strain_rate and powertrain, nothing else."""
+    """On the paper preset the verdict is strain_rate and powertrain, nothing else."""
     # Three companions never stop inside the record: their unloading comes from the surrogate, which
     # needs a few dozen CAE runs to be sound.
     campaign, _ = build(resolve("paper"), seed=0, n_cae=60)

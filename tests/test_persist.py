@@ -92,9 +92,9 @@ def test_a_model_file_gives_back_every_fitted_value_and_the_same_predictions(cam
     loaded = load_model(model_file)
     assert isinstance(loaded.bias_["loading"], OnsetCorrectedBias)  # the partial, the pooled GP, two GMMs
     same(model, loaded)
-    # Bit for bit as from the pickle files the workflow used: those, too, stored the surrogate's
-    # PCA components (a reversed-stride view in memory) as contiguous arrays, which moves a matrix
-    # product in the last bit against the model still in memory.
+    # Bit for bit as the model after a pickle round trip: a model file, like a pickle, stores the
+    # surrogate's PCA components (a reversed-stride view in memory) as contiguous arrays, which
+    # moves a matrix product in the last bit against the model still in memory.
     reference = pickle.loads(pickle.dumps(model))
     for test_id in ("T02", "T08"):
         got, want = _at(loaded, campaign.pulses[test_id]), _at(reference, campaign.pulses[test_id])

@@ -147,7 +147,7 @@ def test_estimator_manners_and_seeding(world):
 
 def test_the_fit_runs_on_one_blas_thread_whatever_the_caller_set(world, monkeypatch):
     # A threaded product sums in a thread-count-dependent order: the workflow (one thread per
-    # job) and a 2-thread shell gave surrogates 1e-5 apart and a fold 0.008 apart in ISO.
+    # job) and a 2-thread shell would give surrogates 1e-5 apart and a fold 0.008 apart in ISO.
     seen = []
     impute = surrogate_module._impute_low_rank
     monkeypatch.setattr(surrogate_module, "_impute_low_rank", lambda *a: (
@@ -187,7 +187,7 @@ def test_evaluate_refuses_a_surrogate_of_another_campaign(tmp_path, world, fitte
 def test_a_run_whose_falling_tail_cannot_absorb_the_energy_is_an_input_error():
     # Closed form: the decel falls linearly from 101 to 1 m/s^2 in 0.1 s, a velocity change of
     # 5.1 m/s at v0 = 10 m/s. Continued with its falling last stiffness the decel reaches 0 long
-    # before the remaining energy is absorbed, so the run has no maximum crush (was a silent NaN).
+    # before the remaining energy is absorbed, so the run has no maximum crush: an input error, not a NaN.
     t = np.linspace(0.0, 0.1, 1001)
     run = Pulse(time=t, decel=101.0 - 1000.0 * t, v0=10.0, front_weight=900.0, rear_weight=700.0,
                 run_id="C999", source="cae", where="c999.csv")

@@ -112,7 +112,7 @@ def scatter_needs(eta, bounds, hyp, cond):
     variance factor recomputed, conditioned on the other groups' points - and predicts the group's points:
     ``need = (e / 1.96)^2 - latent variance`` (normalised units). The closed-form leave-one-group-out at fixed
     hyperparameters is far more optimistic (state folds of the paper campaign: scatter 0.00-0.06 vs 0.05-0.11
-    relative); a refit whose factorisation fails is left out.
+    relative; docs/decisions.md, section 6); a refit whose factorisation fails is left out.
 
     Parameters
     ----------

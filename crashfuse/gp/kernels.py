@@ -3,7 +3,7 @@ Cholesky factor and inverse of the correlation matrix with its nugget (paper Eq.
 
 Pure functions on arrays. ``Z`` are inputs standardised to zero mean and unit variance per column, shape (n, d);
 ``theta`` (d,) are the correlation parameters on them. The routines marked bit-identical give exactly the bits of
-the plain NumPy/SciPy expressions they replace: the likelihood optimiser's path depends on every bit.
+the plain NumPy/SciPy expressions they stand for: the likelihood optimiser's path depends on every bit.
 """
 
 from __future__ import annotations

@@ -56,8 +56,8 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         Bounds on every ``theta_i`` for inputs standardised to unit variance; the
         correlation length ``1/sqrt(theta)`` spans 1/30 to 300 standard deviations by
         default. The low end lets the fit switch off an input: with a few tests per cluster
-        the test-level inputs (v0, weights) are confounded, and a floor of 1e-3 made
-        held-out errors up to 90x larger in ``benchmarks/bench_bias.py`` data.
+        the test-level inputs (v0, weights) are confounded, and a floor of 1e-3 gives
+        held-out errors up to 90x larger on ``benchmarks/bench_bias.py`` data (docs/decisions.md, section 3).
     nugget_bounds : (float, float)
         Bounds on the noise-to-signal variance ratio. The lower bound keeps the
         correlation matrix's condition number below about ``n / nugget_min``.
@@ -76,9 +76,9 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         affine-equivariant in ``y``).
     blas_threads : int or None
         BLAS threads inside ``fit``, ``predict`` and draws (``None``: the library default).
-        One thread, because threaded BLAS on these few-hundred-point matrices ran 2-10x
-        slower on the shared 2-core machine (``benchmarks/bench_bias.py``); parallelise
-        folds across processes instead.
+        One thread, because threaded BLAS on these few-hundred-point matrices runs 2-10x
+        slower on the shared 2-core machine (``benchmarks/bench_bias.py``, docs/decisions.md,
+        section 12); parallelise folds across processes instead.
     random_state : int, RandomState or None
         Seeds the restarts and the subsets.
     theta_max_candidates : sequence of float or None

@@ -25,7 +25,7 @@ def blas_threads(n):
 
     One thread also makes results independent of the machine: a threaded matrix product sums
     in an order that depends on the thread count, and a last-bit change can move an optimiser
-    to another local optimum (a ``paper`` K3 fold's ISO moved by 0.008).
+    to another local optimum (a ``paper`` K3 fold's ISO moves by 0.008; docs/decisions.md, section 12).
     """
     return controller().limit(limits=n, user_api="blas")
 

@@ -154,8 +154,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         rng = check_random_state(self.random_state)
         C = self._cluster_view(X, fit=True)
         # The mixture keeps only the labels of its k-means start, so its OpenMP threads change
-        # nothing but the cost: on the shared 2-core machine they spent 5-10x the CPU of one
-        # thread (K = 3: 1.1 s vs 0.19 s per fit).
+        # nothing but the cost: on the shared 2-core machine they spend 5-10x the CPU of one
+        # thread (docs/decisions.md, section 12).
         with controller().limit(limits=self.blas_threads, user_api="openmp"):
             self.gmm_ = GaussianMixture(self.n_clusters, covariance_type="full", n_init=self.n_init,
                                         reg_covar=self.reg_covar,

@@ -35,10 +35,11 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
     Parameters
     ----------
     base : estimator
-        The bias model (:class:`GMMGPBias`), cloned and fitted on all rows.
+        The bias model (:class:`crashfuse.method.mixture.GMMGPBias`), cloned and fitted on all rows.
     time : callable
         Maps inputs ``X`` (m, d) to the nominal time since contact in s, shape (m,)
-        (:func:`crashfuse.method.projection.nominal_time`); picklable.
+        (:func:`crashfuse.method.projection.nominal_time`); a function listed in
+        :mod:`crashfuse.method.files`, or a ``functools.partial`` of one, so that a model file can store it.
     window : (float, float)
         Times (s) where the correction starts to fade and where it is gone.
     max_rows : int
@@ -92,7 +93,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         res = self.base_.grouped_residuals(X[rows], y[rows], groups[rows])
         if res is not None:
             # Every early row enters the likelihood: a 1-D GP on a few hundred rows is cheap, and on a
-            # 300-row subset some seeds' restarts stopped in a flat optimum (no correction).
+            # 300-row subset some seeds' restarts stop in a flat optimum (no correction).
             gp = KrigingGP(trend="zero", max_fit_points=None, estimate_scatter=False,
                            blas_threads=self.blas_threads, random_state=self.random_state)
             self.onset_gp_ = gp.fit(t[early, None], res[early], groups[rows][early])

@@ -1,4 +1,4 @@
-"""Bias-corrected rollout with Monte Carlo bands (paper Eq. 22-23, issue 4 item 4).
+"""Bias-corrected rollout with Monte Carlo bands (paper Eq. 22-23).
 
 At a new condition (v0, axle masses, optionally powertrain and drive) the deceleration is the
 CAE curve of that condition (surrogate, or the companion run) plus the bias, per branch::
@@ -24,7 +24,7 @@ path by the deviation on that path (the draws' spread changes slowly with v wher
 
 Two rollouts are reported: the deterministic *mean-function* rollout (bias = GP mean) and the
 Monte Carlo ensemble. The scored prediction, ``Prediction.decel``, is the **Monte Carlo mean**:
-the mean over samples of the deceleration at each time (issue 4, item 5).
+the mean over samples of the deceleration at each time.
 
 Two deceleration bands. The *latent* band (``decel_latent_lo/hi``) is the ensemble's 2.5/97.5 %
 percentiles: the bias function's uncertainty only. A new physical test also scatters about the

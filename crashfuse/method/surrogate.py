@@ -202,8 +202,8 @@ class CAESurrogate(BaseEstimator):
         Iterations of the low-rank imputation of the loading grid beyond each run's reach.
     n_restarts : int
         Likelihood restarts of each KrigingGP beyond its fixed start. 0: on the ``paper``
-        campaign one restart gave the same held-out ISO (mean 0.9915, min 0.9666) at about
-        twice the fit time.
+        campaign one restart gives the same held-out ISO (mean 0.9915, min 0.9666) at about
+        twice the fit time (docs/decisions.md, section 13).
     max_fit_points : int or None
         Runs (a seeded subset) in each KrigingGP's likelihood search; all runs are conditioned on.
     random_state : int, RandomState or None

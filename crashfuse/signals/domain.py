@@ -11,7 +11,7 @@ Why this one: the paper's Eq. 7 is explicit Euler, first order: on NHTSA test 10
 step is doubled, where Verlet's moves by 0.0003 mm. And the paper's Eq. 5/23 index the
 update differently from Eq. 7 (Eq. 23 uses the new acceleration for the velocity, Eq. 7 the old),
 so data converted with one and predictions rolled out with the other would disagree before any
-model error. The issue demands one integrator for both. Velocity Verlet is second order, its
+model error: one integrator serves both. Velocity Verlet is second order, its
 velocity is exactly the trapezoidal integral of the sampled deceleration (the usual way to
 integrate a sampled pulse), its displacement is consistent with that velocity, and it stays explicit in
 a rollout because the new deceleration ``a_i = G(s_i, ...)`` depends on the new position only.

@@ -1,6 +1,6 @@
 """Pulse metrics: peak deceleration, time of zero velocity, dynamic crush, rebound, OLC.
 
-Filter classes (the issue's rules, after SAE J211-1's recommendations): the peak deceleration is
+Filter classes (after SAE J211-1's recommendations): the peak deceleration is
 read from the CFC 60 pulse; velocity and displacement come from integrating the CFC 180 pulse.
 A raw pulse (``meta['cfc']`` None) is filtered with each class over the FULL record, pre-impact
 samples included, and cropped at t = 0 afterwards. A pulse already at CFC 60 (campaign data) is

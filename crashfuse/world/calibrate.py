@@ -41,7 +41,7 @@ FITTED = {
     "unloading.k": (4.0e7, 1.0e7, 2.0e8),
 }
 METRICS = ("peak_decel_g", "t_zero_velocity_ms", "dynamic_crush_mm", "rebound_kmh")
-TOLERANCE = 0.10  # relative, the bar
+TOLERANCE = 0.10  # relative: every metric within 10 % of the test's
 T_END = 0.250  # s: covers the 200 ms rebound window of pulse_metrics, with filter margin
 SHAPE_WEIGHT = 0.5  # weight of the shape residuals against the four metric residuals
 

@@ -64,7 +64,7 @@ QUANTITIES = {
     "mass.extra": "extra",
 }
 
-# Realistic magnitudes (the `paper` preset and `--strength realistic`): chosen physical magnitudes,
+# Realistic magnitudes (the `paper` preset and ``strength="realistic"``): chosen physical magnitudes,
 # except `unloading.k`, fitted with the vehicle's force levels to NHTSA 10146 by
 # `crashfuse world calibrate` (crashfuse.world.calibrate).
 REALISTIC = {
@@ -88,7 +88,7 @@ REALISTIC = {
     "mass.extra": 60.0,
 }
 
-# `--strength subtle`: the magnitudes that change when an effect is made subtle (the rest stay
+# ``strength="subtle"``: the magnitudes that change when an effect is made subtle (the rest stay
 # realistic). Chosen so that withholding one subtle effect lowers the mean CAE-vs-test
 # ISO 18571 overall by 0.03-0.08 from the control campaign's (tests/test_world.py), over 0-60 ms -
 # except `unloading`, which acts only after maximum crush (after 60 ms at every Table 1 speed) and

@@ -1,6 +1,6 @@
 """Realism bars of a generated campaign: the CAE-vs-test gap and physically plausible tests.
 
-Bars (issue 3, item 5), checked on the ``paper`` preset by ``tests/test_world.py`` and printed by
+Bars, checked on the ``paper`` preset by ``tests/test_world.py`` and printed by
 ``crashfuse world realism DIR``:
 
 * ISO/TS 18571 overall rating of each test's companion CAE run against the test over 0-60 ms

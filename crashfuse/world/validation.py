@@ -28,8 +28,8 @@ from crashfuse.world.presets import resolve
 
 TOLERANCE = {"realistic": 0.25, "subtle": 0.50}  # relative error allowed on a headline quantity
 # CAE runs per campaign besides the companions: the surrogate behind the reference beyond each CAE
-# run's crush (where a heavier test goes) needs them. 60 runs left the realistic 60 kg `mass` 26 %
-# low (seed 0) or second to `unloading` (seed 1); 300 recover it (19 %, 16 %; README).
+# run's crush (where a heavier test goes) needs them; with 300 every withheld effect comes first
+# (docs/decisions.md, section 17).
 N_CAE = 300
 COLUMNS = ("withheld", "strength", "seed", "verdict", "first", "first_correct", "spurious", "parameter", "true",
            "fitted", "fitted_se", "rel_error", "within_tolerance", "heldout_mse_ratio", "iso_0_60_cae",
