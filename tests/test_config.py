@@ -79,7 +79,7 @@ def test_fold_settings_list_only_the_bias_settings_a_fit_changed():
     (["--inputs", "state", "--seed", "1", "--holdout", "T01"], None),  # the config is fine: the campaign is not
 ])
 def test_the_cli_names_the_flag_of_a_bad_setting(tmp_path, capsys, args, flag):
-    assert main(["fit", str(tmp_path / "nowhere"), "--k", "1", *args, "--out", str(tmp_path / "m.pkl")]) == 2
+    assert main(["fit", str(tmp_path / "nowhere"), "--k", "1", *args, "--out", str(tmp_path / "m.cfmodel")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1
     if flag:
