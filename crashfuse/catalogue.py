@@ -18,6 +18,7 @@ All quantities are SI.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from crashfuse.errors import InputError
 
@@ -125,6 +126,44 @@ def check_effect(name: str, field: str = "effect") -> str:
     if name not in CATALOGUE:
         raise InputError(f"unknown effect {name!r}; expected one of {', '.join(EFFECTS)}", field=field)
     return name
+
+
+def parse_params(items, known, positive=()) -> dict:
+    """Parse ``["effect.param=value", ...]`` into ``{"effect.param": float}`` (SI) for one set of laws.
+
+    Parameters
+    ----------
+    items : iterable of str or None
+    known : collection of str
+        The laws' parameter names ``effect.param``.
+    positive : collection of str
+        Parameters that divide or set a scale: zero is as invalid as negative.
+
+    Raises
+    ------
+    InputError
+        Field ``overrides``: a malformed item, an unknown effect or parameter, a value that is not a
+        finite number >= 0 (> 0 for ``positive``).
+    """
+    out = {}
+    for item in items or ():
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        if not sep:
+            raise InputError(f"expected name=value, got {item!r}", field="overrides")
+        effect = check_effect(name.split(".")[0], field="overrides")
+        if name not in known:
+            names = ", ".join(k for k in known if k.startswith(effect + "."))
+            raise InputError(f"unknown parameter {name!r}; expected one of {names}", field="overrides")
+        try:
+            value = float(text)
+        except ValueError:
+            raise InputError(f"{name}: expected a number, got {text!r}", field="overrides") from None
+        if not math.isfinite(value) or value < 0 or (value == 0 and name in positive):
+            need = "> 0" if name in positive else ">= 0"
+            raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="overrides")
+        out[name] = value
+    return out
 
 
 def quantity(param: str, declaration: dict) -> Quantity:

@@ -35,11 +35,9 @@ body (crush s in m, crush velocity sdot in m/s):
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect, key
+from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect, key, parse_params
 from crashfuse.errors import InputError
 
 # Each parameter of the laws above as the catalogue quantity it is.
@@ -133,32 +131,8 @@ def params_at_strength(strength: str = "realistic", effects=EFFECTS) -> dict:
 
 
 def parse_overrides(items) -> dict:
-    """Parse ``["effect.param=value", ...]`` into a dict of floats (``overrides`` of :func:`crashfuse.world.presets.resolve`).
-
-    Raises
-    ------
-    InputError
-        Malformed item, unknown effect or parameter, non-numeric, non-finite or negative value.
-    """
-    out = {}
-    for item in items or ():
-        name, sep, text = item.partition("=")
-        name = name.strip()
-        if not sep:
-            raise InputError(f"expected name=value, got {item!r}", field="overrides")
-        check_effect(name.split(".")[0], field="overrides")
-        if name not in REALISTIC:
-            known = ", ".join(k for k in REALISTIC if k.startswith(name.split(".")[0] + "."))
-            raise InputError(f"unknown parameter {name!r}; expected one of {known}", field="overrides")
-        try:
-            value = float(text)
-        except ValueError:
-            raise InputError(f"{name}: expected a number, got {text!r}", field="overrides") from None
-        if not math.isfinite(value) or value < 0 or (value == 0 and name in POSITIVE):
-            need = "> 0" if name in POSITIVE else ">= 0"
-            raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="overrides")
-        out[name] = value
-    return out
+    """``["effect.param=value", ...]`` as ``{"effect.param": float}`` for these laws (:func:`crashfuse.catalogue.parse_params`)."""
+    return parse_params(items, REALISTIC, POSITIVE)
 
 
 def headline(effect: str, params: dict, tests) -> dict:

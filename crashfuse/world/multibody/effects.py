@@ -30,11 +30,9 @@ Every parameter is ``effect.name`` in SI, finite and >= 0 (> 0 for those in :dat
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect, key
+from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect, key, parse_params
 from crashfuse.errors import InputError
 
 # Realistic magnitudes: chosen physical values, except `unloading.k`, fitted with the structure's
@@ -107,25 +105,8 @@ def params_at_strength(strength: str = "realistic", subtle_effects=()) -> dict:
 
 
 def parse_overrides(items) -> dict:
-    """``["effect.param=value", ...]`` (``--effect-param``) as a dict of floats; InputError if bad."""
-    out = {}
-    for item in items or ():
-        name, sep, text = (part.strip() for part in item.partition("="))
-        if not sep:
-            raise InputError(f"expected name=value, got {item!r}", field="overrides")
-        effect = check_effect(name.split(".")[0], field="overrides")
-        if name not in REALISTIC:
-            known = ", ".join(k for k in REALISTIC if k.startswith(effect + "."))
-            raise InputError(f"unknown parameter {name!r}; expected one of {known}", field="overrides")
-        try:
-            value = float(text)
-        except ValueError:
-            raise InputError(f"{name}: expected a number, got {text!r}", field="overrides") from None
-        if not math.isfinite(value) or value < 0 or (value == 0 and name in POSITIVE):
-            need = "> 0" if name in POSITIVE else ">= 0"
-            raise InputError(f"{name}: expected a finite value {need} (SI units), got {text}", field="overrides")
-        out[name] = value
-    return out
+    """``["effect.param=value", ...]`` as ``{"effect.param": float}`` for these laws (:func:`crashfuse.catalogue.parse_params`)."""
+    return parse_params(items, REALISTIC, POSITIVE)
 
 
 def headline(effect: str, params: dict, engine_mass: dict) -> dict:

@@ -14,16 +14,14 @@ inside the 0-60 ms scoring window and the fastest lies beyond the paper's 35.2 m
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pandas as pd
 
+from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.errors import InputError
 from crashfuse.units import LB, MPH
-from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.world.multibody.effects import params_at_strength
-from crashfuse.world.presets import TABLE1, table1_tests
+from crashfuse.world.presets import TABLE1, Design, table1_tests
 
 PRESETS = ("paper", "withheld")
 PAPER_WITHHELD = ("strain_rate", "powertrain")
@@ -32,26 +30,6 @@ N_CAE = 400
 WIDE_SPEEDS_MPH = (10.0, 11.5, 13.0, 16.0, 19.0, 22.0, 25.0, 28.0, 31.0, 34.0, 37.0)
 # Table 1's configurations in turn, each with its mean Table 1 axle masses.
 WIDE_CONFIGS = (("Type I", "FWD"), ("Type II", "AWD"), ("Type I", "AWD"))
-
-
-@dataclasses.dataclass(frozen=True)
-class Design:
-    """A preset resolved: withheld effects, strength, every effect parameter (SI)."""
-
-    preset: str
-    withheld: tuple
-    strength: str
-    params: dict
-
-    @property
-    def test_effects(self) -> tuple:
-        """Effects present in the physical tests (all of the catalogue)."""
-        return EFFECTS
-
-    @property
-    def cae_effects(self) -> tuple:
-        """Effects present in the CAE runs."""
-        return tuple(e for e in EFFECTS if e not in self.withheld)
 
 
 def resolve(preset: str | None = None, withhold=None, strength: str = "realistic",
