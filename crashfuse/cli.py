@@ -124,6 +124,18 @@ def _world_validate(args) -> int:
     return 0
 
 
+def _world_validate_method(args) -> int:
+    from crashfuse.world.method_validation import DEFAULTS, QUICK, validate_method
+
+    given = dict(worlds=args.worlds, withheld=args.withheld, strengths=args.strengths, seeds=args.seeds,
+                 matrices=args.matrices, n_cae=args.n_cae, inputs=args.inputs, ks=args.k, n_samples=args.samples)
+    base = QUICK if args.quick else DEFAULTS
+    spread = {name: base[name] if value is None else value for name, value in given.items()}
+    result = validate_method(args.out, work=args.work, random_state=args.seed, n_jobs=args.jobs, **spread)
+    print(result.summary.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
+    return 0
+
+
 def _method_settings(args) -> dict:
     """The MethodConfig settings of ``_add_method_options`` (None: the input mode's default)."""
     return dict(assignment=args.assignment, extra_inputs=args.extra_inputs, n_grid=args.n_grid,
@@ -365,7 +377,8 @@ def _add_world_option(s) -> None:
 def _add_world(sub) -> None:
     w = sub.add_parser("world", help="the synthetic crash world (validation only)")
     wsub = w.add_subparsers(dest="world_command", required=True, parser_class=_Parser)
-    for add in (_add_world_generate, _add_world_calibrate, _add_world_realism, _add_world_validate):
+    for add in (_add_world_generate, _add_world_calibrate, _add_world_realism, _add_world_validate,
+                _add_world_validate_method):
         add(wsub)
 
 
@@ -413,6 +426,33 @@ def _add_world_validate(wsub) -> None:
                    help="CAE runs per campaign besides the companions (default: the harness's N_CAE)")
     s.add_argument("--out", required=True, help="output folder for validation.csv and validation.md")
     s.set_defaults(func=_world_validate)
+
+
+def _add_world_validate_method(wsub) -> None:
+    s = wsub.add_parser("validate-method", help="method validation matrix: leave-one-test-out evaluation on "
+                                                "campaigns of both worlds (docs/method-validation.md)")
+    s.add_argument("--out", required=True, help="output folder for method_matrix.csv/.md and method_summary.csv")
+    s.add_argument("--work", default=None,
+                   help="folder of the generated campaigns and their evaluations, reused when present "
+                        "(default OUT/work)")
+    s.add_argument("--quick", action="store_true",
+                   help="a tiny spread (the control of both worlds, seed 0, Table 1, 20 CAE runs, state K1, "
+                        "20 samples); options given beside it still apply")
+    s.add_argument("--worlds", nargs="+", default=None, help="first multibody (default both)")
+    s.add_argument("--withheld", nargs="+", default=None, metavar="WITHHELD",
+                   help="single (every effect), pairs (every pair; multibody only), paper, none (the control), "
+                        "an EFFECT or EFFECT+EFFECT (default: single pairs paper none)")
+    s.add_argument("--strengths", nargs="+", default=None, help="realistic subtle (default both)")
+    s.add_argument("--seeds", nargs="+", type=_seed, default=None, help="world seeds (default 0 1 2)")
+    s.add_argument("--matrices", nargs="+", default=None,
+                   help="table1 wide (default both; the first world has table1 only)")
+    s.add_argument("--n-cae", nargs="+", type=_positive, default=None, help="CAE design sizes (default 150 1000)")
+    s.add_argument("--inputs", nargs="+", default=None, help="input modes paper state (default state)")
+    s.add_argument("--k", type=_positive, nargs="+", default=None, help="mixture sizes (default 1 2 3)")
+    s.add_argument("--samples", type=_positive, default=None, help="Monte Carlo samples per fold (default 200)")
+    s.add_argument("--seed", type=_seed, default=0, help="seed of every evaluation (default 0)")
+    s.add_argument("--jobs", type=_positive, default=2, help="worker processes for each campaign's folds (default 2)")
+    s.set_defaults(func=_world_validate_method)
 
 
 def _add_fit(sub) -> None:
@@ -546,6 +586,10 @@ _FLAGS = {
                        "overrides": "--effect-param", "seed": "--seed", "matrix": "--matrix", "n_cae": "--n-cae"},
     "world calibrate": {"max_nfev": "--max-evals"},
     "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds"},
+    "world validate-method": {"worlds": "--worlds", "withheld": "--withheld", "strengths": "--strengths",
+                              "seeds": "--seeds", "matrices": "--matrices", "n_cae": "--n-cae",
+                              "inputs": "--inputs", "ks": "--k", "n_samples": "--samples", "out": "--out",
+                              "work": "--work"},
 }
 
 

@@ -1,0 +1,440 @@
+"""The method validation matrix: leave-one-test-out evaluation on campaigns of both worlds.
+
+The method's counterpart of :mod:`crashfuse.world.validation`. A spread of campaigns - world x
+test matrix x CAE design size x withheld effects x strength x seed - is generated into a work
+folder, :func:`crashfuse.evaluation.loto.evaluate` runs on each, and one table rates every model
+against the CAE: mean ISO/TS 18571 overall per window, the test-windows it loses to CAE (by more
+than :data:`LOSS_MARGINS`), its worst margin and its band coverage. The first world withholds one
+effect at a time and has the Table 1 matrix only; its share of the spread skips pairs and the
+wide matrix (the table's notes say so). Campaigns and evaluations are kept in the work folder
+under a key of everything that makes them, and reused when present (resume); after a change of
+the method, clear the work folder's ``evaluations``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from crashfuse.catalogue import EFFECTS, check_effect
+from crashfuse.errors import InputError
+from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, window_key
+from crashfuse.evaluation.loto import evaluate
+from crashfuse.io.atomic import atomic_path, write_text
+from crashfuse.io.campaign import read_campaign
+from crashfuse.method.projection import INPUTS
+from crashfuse.world import WORLD_VERSION as FIRST_VERSION
+from crashfuse.world import generate as first_generate
+from crashfuse.world import presets as first_presets
+from crashfuse.world.multibody import WORLD_VERSION as SECOND_VERSION
+from crashfuse.world.multibody import generate as second_generate
+from crashfuse.world.multibody import presets as second_presets
+
+WORLDS = ("first", "multibody")
+STRENGTHS = ("realistic", "subtle")
+MATRICES = second_presets.MATRICES  # the first world has table1 only
+# Test matrices and withheld sets each world can make.
+WORLD_MATRICES = {"first": ("table1",), "multibody": second_presets.MATRICES}
+WORLD_WITHHOLDS_SEVERAL = {"first": False, "multibody": True}
+# Withheld tokens: groups expanding to every single effect / every pair (where the world can).
+SINGLE, PAIRS, PAPER, CONTROL = "single", "pairs", "paper", "none"
+PAIR_SEP = "+"
+LOSS_MARGINS = (0.01, 0.05)  # a test-window is lost when the model's ISO is below CAE's by more
+COVERAGE_FILE = "coverage.csv"
+
+DEFAULTS = dict(worlds=WORLDS, withheld=(SINGLE, PAIRS, PAPER, CONTROL), strengths=STRENGTHS, seeds=(0, 1, 2),
+                matrices=MATRICES, n_cae=(150, 1000), inputs=("state",), ks=(1, 2, 3), n_samples=200)
+# A tiny spread for tests and a first look: the control of both worlds on small CAE designs.
+QUICK = dict(worlds=WORLDS, withheld=(CONTROL,), strengths=("realistic",), seeds=(0,), matrices=("table1",),
+             n_cae=(20,), inputs=("state",), ks=(1,), n_samples=20)
+
+KEY_COLUMNS = ("world", "withheld", "strength", "seed", "matrix", "n_cae", "inputs", "model")
+SUMMARY_KEYS = ("inputs", "model")
+
+
+@dataclasses.dataclass(frozen=True)
+class CampaignSpec:
+    """One campaign of the matrix.
+
+    Attributes
+    ----------
+    world : {"first", "multibody"}
+    withheld : str
+        A catalogue effect, effects joined by ``+``, ``paper`` or ``none`` (the control).
+    strength : {"realistic", "subtle"}
+    seed : int
+        World seed (CAE design, test noise).
+    matrix : {"table1", "wide"}
+    n_cae : int
+        Latin-hypercube CAE runs besides the companions.
+    """
+
+    world: str
+    withheld: str
+    strength: str
+    seed: int
+    matrix: str
+    n_cae: int
+
+    @property
+    def key(self) -> str:
+        """Folder name: every field and the world's version, so a new world version regenerates."""
+        version = world_version(self.world).removeprefix(f"{self.world}-")
+        return (f"{self.world}-v{version}-{self.matrix}-cae{self.n_cae}-{self.withheld}-"
+                f"{self.strength}-seed{self.seed}")
+
+    def generate(self, folder: Path) -> Path:
+        """Write this campaign (with its ``world.json``) into ``folder``."""
+        names = None if self.withheld == PAPER else self.withheld.split(PAIR_SEP)
+        preset = PAPER if names is None else "withheld"
+        if self.world == "first":
+            design = first_presets.resolve(preset, None if names is None else names[0], self.strength)
+            return first_generate.generate(folder, design, seed=self.seed, n_cae=self.n_cae)
+        design = second_presets.resolve(preset, names, self.strength)
+        return second_generate.generate(folder, design, seed=self.seed, n_cae=self.n_cae, matrix=self.matrix)
+
+
+def world_version(world: str) -> str:
+    """The version string a world writes into ``world.json``."""
+    return FIRST_VERSION if world == "first" else SECOND_VERSION
+
+
+# --- the spread -----------------------------------------------------------------------------------
+
+
+def plan(worlds=DEFAULTS["worlds"], withheld=DEFAULTS["withheld"], strengths=DEFAULTS["strengths"],
+         seeds=DEFAULTS["seeds"], matrices=DEFAULTS["matrices"], n_cae=DEFAULTS["n_cae"]) -> tuple[list, list]:
+    """The campaigns of the spread, and notes on what a world skips.
+
+    Parameters
+    ----------
+    worlds : sequence of {"first", "multibody"}
+    withheld : sequence of str
+        ``single`` (every catalogue effect), ``pairs`` (every pair, where the world withholds
+        several), ``paper``, ``none`` (the control), an effect, or effects joined by ``+``.
+    strengths : sequence of {"realistic", "subtle"}
+        The control withholds nothing: it runs at the first strength only.
+    seeds : sequence of int >= 0
+    matrices : sequence of {"table1", "wide"}
+        A world skips a matrix it lacks (the first world: ``wide``).
+    n_cae : sequence of int >= 1
+
+    Returns
+    -------
+    specs : list of CampaignSpec
+    notes : list of str
+
+    Raises
+    ------
+    InputError
+        An unknown world, token, effect, strength or matrix, a bad seed or size, a set of effects a
+        selected world cannot withhold, or a world left without any matrix; naming the argument.
+    """
+    worlds = _choices(worlds, WORLDS, "worlds")
+    strengths = _choices(strengths, STRENGTHS, "strengths")
+    matrices = _choices(matrices, MATRICES, "matrices")
+    seeds = _counts(seeds, "seeds", minimum=0)
+    sizes = _counts(n_cae, "n_cae", minimum=1)
+    labels = _withheld_labels(withheld, worlds)
+    specs, notes = [], []
+    for world in worlds:
+        own = [m for m in matrices if m in WORLD_MATRICES[world]]
+        if not own:
+            raise InputError(f"the {world} world has the matrices {', '.join(WORLD_MATRICES[world])} only, "
+                             f"got {', '.join(matrices)}", field="matrices")
+        if len(own) < len(matrices):
+            notes.append(f"{world} world: matrix {', '.join(m for m in matrices if m not in own)} skipped "
+                         f"(it has {', '.join(WORLD_MATRICES[world])} only)")
+        if PAIRS in withheld and not WORLD_WITHHOLDS_SEVERAL[world]:
+            notes.append(f"{world} world: pairs skipped (it withholds one effect at a time)")
+        for matrix, size, label in itertools.product(own, sizes, labels[world]):
+            for strength in strengths[:1] if label == CONTROL else strengths:
+                specs += [CampaignSpec(world, label, strength, seed, matrix, size) for seed in seeds]
+    return specs, notes
+
+
+def _choices(values, allowed, field) -> tuple:
+    values = _as_tuple(values)
+    bad = [v for v in values if v not in allowed]
+    if not values or bad:
+        raise InputError(f"expected values among {', '.join(allowed)}, got {' '.join(map(str, values)) or 'none'}",
+                         field=field)
+    return tuple(dict.fromkeys(values))
+
+
+def _counts(values, field, minimum) -> tuple:
+    values = _as_tuple(values)
+    bad = [v for v in values if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < minimum]
+    if not values or bad:
+        raise InputError(f"expected integers >= {minimum}, got {' '.join(map(str, values)) or 'none'}", field=field)
+    return tuple(dict.fromkeys(int(v) for v in values))
+
+
+def _as_tuple(values) -> tuple:
+    return (values,) if isinstance(values, (str, int, np.integer)) else tuple(values)
+
+
+def _withheld_labels(tokens, worlds) -> dict:
+    """Per world, the withheld labels of ``tokens`` in order (see :func:`plan`)."""
+    tokens = _as_tuple(tokens)
+    if not tokens:
+        raise InputError("expected withheld effects or groups, got none", field="withheld")
+    out = {world: [] for world in worlds}
+    for token in tokens:
+        for world in worlds:
+            out[world] += _expand(token, world)
+    return {world: list(dict.fromkeys(labels)) for world, labels in out.items()}
+
+
+def _expand(token: str, world: str) -> list[str]:
+    several = WORLD_WITHHOLDS_SEVERAL[world]
+    if token == SINGLE:
+        return list(EFFECTS)
+    if token == PAIRS:
+        return [PAIR_SEP.join(pair) for pair in itertools.combinations(EFFECTS, 2)] if several else []
+    if token in (PAPER, CONTROL):
+        return [token]
+    names = [check_effect(name, field="withheld") for name in token.split(PAIR_SEP)]
+    if len(set(names)) < len(names):
+        raise InputError(f"expected distinct effects, got {token!r}", field="withheld")
+    if len(names) > 1 and not several:
+        raise InputError(f"the {world} world withholds one effect at a time, got {token!r} (several: the "
+                         f"{' or '.join(w for w in WORLDS if WORLD_WITHHOLDS_SEVERAL[w])} world)", field="withheld")
+    return [PAIR_SEP.join(sorted(names, key=EFFECTS.index))]
+
+
+def check_method(inputs, ks, n_samples) -> tuple:
+    """The evaluation grid, checked: input modes, K values, Monte Carlo samples."""
+    inputs = _choices(inputs, INPUTS, "inputs")
+    ks = _counts(ks, "ks", minimum=1)
+    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
+        raise InputError(f"expected an integer >= 1, got {n_samples!r}", field="n_samples")
+    return inputs, ks, int(n_samples)
+
+
+# --- one campaign ---------------------------------------------------------------------------------
+
+
+def campaign_folder(spec: CampaignSpec, work: Path, say) -> Path:
+    """The campaign's folder under ``work/campaigns``, generated unless already there."""
+    folder = Path(work) / "campaigns" / spec.key
+    if (folder / "world.json").is_file():
+        return folder
+    t0 = time.perf_counter()
+    spec.generate(folder)
+    say(f"generated {spec.key} in {time.perf_counter() - t0:.0f} s")
+    return folder
+
+
+def evaluation_key(inputs, ks, n_samples, random_state) -> str:
+    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}-n{n_samples}-seed{random_state}"
+
+
+def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int,
+                      n_jobs: int) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
+    """The campaign's ISO table and coverage, from ``out`` if there, else evaluated and written there.
+
+    ``coverage.csv`` is written before ``iso_table.csv``: an ISO table means a complete evaluation.
+
+    Returns
+    -------
+    iso_table, coverage : DataFrame
+    reused : bool
+    """
+    iso_path, cov_path = out / ISO_TABLE, out / COVERAGE_FILE
+    if iso_path.is_file() and cov_path.is_file():
+        return pd.read_csv(iso_path), pd.read_csv(cov_path), True
+    result = evaluate(read_campaign(folder), ks=ks, inputs=inputs, n_samples=n_samples, random_state=random_state,
+                      n_jobs=n_jobs, progress=None)
+    out.mkdir(parents=True, exist_ok=True)
+    for frame, path in ((result.coverage, cov_path), (result.iso_table, iso_path)):
+        with atomic_path(path) as tmp:
+            frame.to_csv(tmp, index=False, float_format="%.6g")
+    # Read back, so a fresh and a resumed run give the same numbers.
+    return pd.read_csv(iso_path), pd.read_csv(cov_path), False
+
+
+def score_rows(iso: pd.DataFrame, coverage: pd.DataFrame) -> list[dict]:
+    """Per input mode and model of one campaign's ``iso_table.csv``: its rating against CAE.
+
+    Parameters
+    ----------
+    iso : DataFrame
+        An ``iso_table.csv`` (:data:`crashfuse.evaluation.iso_table.COLUMNS`); the ``CAE`` rows are
+        the baseline, every other ``model`` label is rated (in the table's order).
+    coverage : DataFrame
+        The evaluation's ``coverage.csv``.
+
+    Returns
+    -------
+    list of dict
+        ``inputs, model``, ``n_tests``, per window ``iso_<w>`` and ``cae_<w>`` (mean overall score),
+        ``n_test_windows``, ``lost_<m>`` (test-windows where the model scores below CAE by more than
+        m, for m in :data:`LOSS_MARGINS`), ``worst_margin`` (the most negative model - CAE) with
+        ``worst_test`` and ``worst_window``, ``coverage`` and ``coverage_latent`` (fold means).
+    """
+    windows = list(dict.fromkeys(iso["window_ms"]))
+    rows = []
+    for (mode, model), own in iso[iso["model"] != BASELINE].groupby(["inputs", "model"], sort=False):
+        base = iso[(iso["model"] == BASELINE) & (iso["inputs"] == mode)]
+        base = base.drop_duplicates(["test_id", "window_ms"]).set_index(["test_id", "window_ms"])["overall"]
+        score = own.set_index(["test_id", "window_ms"])["overall"]
+        margin = score - base.reindex(score.index)
+        row = dict(inputs=mode, model=model, n_tests=own["test_id"].nunique())
+        for w in windows:
+            row[f"iso_{window_key(w)}"] = score.xs(w, level="window_ms").mean()
+            row[f"cae_{window_key(w)}"] = base.reindex(score.index).xs(w, level="window_ms").mean()
+        row["n_test_windows"] = int(margin.size)
+        for m in LOSS_MARGINS:
+            row[loss_column(m)] = int((margin < -m).sum())
+        worst = margin.idxmin()
+        row.update(worst_margin=float(margin[worst]), worst_test=worst[0], worst_window=worst[1])
+        cov = coverage[(coverage["inputs"] == mode) & (coverage["model"] == model)]
+        row.update(coverage=cov["coverage"].mean(), coverage_latent=cov["coverage_latent"].mean())
+        rows.append(row)
+    return rows
+
+
+def loss_column(margin: float) -> str:
+    """``lost_0_01`` for a margin of 0.01."""
+    return "lost_" + f"{margin:g}".replace(".", "_")
+
+
+# --- the matrix -----------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class MatrixResult:
+    """Result of :func:`validate_method`: the per-campaign table, the per-model summary, the notes."""
+
+    table: pd.DataFrame
+    summary: pd.DataFrame
+    notes: list
+    wall_time: float
+
+
+def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS["withheld"],
+                    strengths=DEFAULTS["strengths"], seeds=DEFAULTS["seeds"], matrices=DEFAULTS["matrices"],
+                    n_cae=DEFAULTS["n_cae"], inputs=DEFAULTS["inputs"], ks=DEFAULTS["ks"],
+                    n_samples: int = DEFAULTS["n_samples"], random_state: int = 0, n_jobs: int = 2,
+                    progress: Callable[[str], None] | None = print) -> MatrixResult:
+    """Generate the spread (:func:`plan`), evaluate each campaign, write the matrix table.
+
+    Parameters
+    ----------
+    out : path
+        Folder for ``method_matrix.csv``, ``method_matrix.md`` and ``method_summary.csv``.
+    work : path, optional
+        Folder of the campaigns and their evaluations, reused when present (default ``out/work``).
+    worlds, withheld, strengths, seeds, matrices, n_cae
+        The spread; see :func:`plan`.
+    inputs : sequence of {"paper", "state"}
+    ks : sequence of int
+    n_samples : int
+        Monte Carlo samples per fold.
+    random_state : int
+        Seed of every evaluation (surrogate, bias models, draws): the same arguments give the same
+        numbers, whatever ``n_jobs``.
+    n_jobs : int
+        Worker processes for each campaign's folds.
+    progress : callable, optional
+        Receives one line per campaign.
+
+    Returns
+    -------
+    MatrixResult
+
+    Raises
+    ------
+    InputError
+        A bad argument (named), before anything is written.
+    """
+    t0 = time.perf_counter()
+    say = progress or (lambda line: None)
+    specs, notes = plan(worlds, withheld, strengths, seeds, matrices, n_cae)
+    inputs, ks, n_samples = check_method(inputs, ks, n_samples)
+    out = Path(out)
+    work = out / "work" if work is None else Path(work)
+    for path, field in ((out, "out"), (work, "work")):
+        if path.exists() and not path.is_dir():
+            raise InputError("expected a folder, found a file", path, field)
+    eval_key = evaluation_key(inputs, ks, n_samples, random_state)
+    say(f"validate-method: {len(specs)} campaigns x {' '.join(inputs)} K {' '.join(map(str, ks))}, "
+        f"{n_samples} samples, work {work}")
+    rows = []
+    for i, spec in enumerate(specs, 1):
+        t1 = time.perf_counter()
+        folder = campaign_folder(spec, work, say)
+        iso, cov, reused = evaluate_campaign(folder, work / "evaluations" / spec.key / eval_key, inputs, ks,
+                                             n_samples, random_state, n_jobs)
+        scored = score_rows(iso, cov)
+        rows += [{**dataclasses.asdict(spec), **row} for row in scored]
+        say(f"[{i}/{len(specs)}] {spec.key}: " + ", ".join(
+            f"{r['inputs']} {r['model']} ISO(0-60) {r.get('iso_0_60', np.nan):.3f} lost {r[loss_column(0.01)]}"
+            for r in scored) + (" (reused)" if reused else f" ({time.perf_counter() - t1:.0f} s)"))
+    table = pd.DataFrame(rows)
+    table = table[list(KEY_COLUMNS) + [c for c in table.columns if c not in KEY_COLUMNS]]
+    summary = summarise(table)
+    result = MatrixResult(table, summary, notes, time.perf_counter() - t0)
+    write_matrix(result, out, header=f"{len(specs)} campaigns; evaluation {eval_key}")
+    say(f"validate-method: done in {result.wall_time:.0f} s -> {out}")
+    return result
+
+
+def summarise(table: pd.DataFrame) -> pd.DataFrame:
+    """Per input mode and model over every campaign of ``table``: share of test-windows beating or
+    tying CAE (within the first loss margin), losses beyond the last, the worst margin and where,
+    mean coverage and mean ISO of the last window for model and CAE."""
+    first, last = loss_column(LOSS_MARGINS[0]), loss_column(LOSS_MARGINS[-1])
+    iso_last = [c for c in table.columns if c.startswith("iso_")][-1]
+    rows = []
+    for (mode, model), g in table.groupby(list(SUMMARY_KEYS), sort=False):
+        worst = g.loc[g["worst_margin"].idxmin()]
+        n = int(g["n_test_windows"].sum())
+        rows.append(dict(inputs=mode, model=model, campaigns=len(g), test_windows=n,
+                         share_beat_or_tie=1.0 - g[first].sum() / n, **{first: int(g[first].sum()),
+                                                                          last: int(g[last].sum())},
+                         worst_margin=worst["worst_margin"],
+                         worst_at=f"{worst['world']} {worst['matrix']} cae{worst['n_cae']} {worst['withheld']} "
+                                  f"{worst['strength']} seed{worst['seed']} {worst['worst_test']} "
+                                  f"{worst['worst_window']}",
+                         coverage=g["coverage"].mean(), coverage_latent=g["coverage_latent"].mean(),
+                         **{iso_last: g[iso_last].mean(), "cae" + iso_last[3:]: g["cae" + iso_last[3:]].mean()}))
+    return pd.DataFrame(rows)
+
+
+def write_matrix(result: MatrixResult, out: Path, header: str = "") -> None:
+    """``method_matrix.csv``, ``method_summary.csv`` and ``method_matrix.md`` into ``out``, atomically."""
+    out.mkdir(parents=True, exist_ok=True)
+    for frame, name in ((result.summary, "method_summary.csv"), (result.table, "method_matrix.csv")):
+        with atomic_path(out / name) as tmp:
+            frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
+    write_text(out / "method_matrix.md", matrix_markdown(result, header))
+
+
+def matrix_markdown(result: MatrixResult, header: str = "") -> str:
+    """The summary per model, the notes, then one line per campaign and model."""
+    table, summary = result.table, result.summary
+    lines = ["# Method validation matrix", "", header, "",
+             f"Lost: test-windows where the model's ISO/TS 18571 overall is below CAE's by more than "
+             f"{' / '.join(f'{m:g}' for m in LOSS_MARGINS)}; worst: the most negative model - CAE.", ""]
+    lines += [f"- {note}" for note in result.notes] + ([""] if result.notes else [])
+    lines += ["## Per model", "", _markdown(summary), "", "## Per campaign", "",
+              _markdown(table.drop(columns=["n_tests"]))]
+    return "\n".join(lines) + "\n"
+
+
+def _markdown(frame: pd.DataFrame) -> str:
+    def cell(v):
+        return f"{v:.3f}" if isinstance(v, (float, np.floating)) else str(v)
+
+    head = "| " + " | ".join(frame.columns) + " |"
+    rule = "|" + "---|" * len(frame.columns)
+    body = ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(index=False)]
+    return "\n".join([head, rule, *body])

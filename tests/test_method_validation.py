@@ -1,0 +1,124 @@
+"""The method validation matrix: its spread, its loss counts, resume, and bad options."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+
+from crashfuse.cli import main
+from crashfuse.errors import InputError
+from crashfuse.evaluation import loto
+from crashfuse.world import method_validation as mv
+
+
+def test_default_spread_skips_what_the_first_world_cannot_make():
+    specs, notes = mv.plan()
+    first = [s for s in specs if s.world == "first"]
+    second = [s for s in specs if s.world == "multibody"]
+    # first: table1 x 2 sizes x (5 effects + paper at 2 strengths + the control once) x 3 seeds
+    assert len(first) == 2 * (6 * 2 + 1) * 3
+    assert {s.matrix for s in first} == {"table1"} and not any("+" in s.withheld for s in first)
+    # multibody: 2 matrices x 2 sizes x (5 + 10 pairs + paper at 2 strengths + the control once) x 3 seeds
+    assert len(second) == 2 * 2 * (16 * 2 + 1) * 3
+    assert sum(s.withheld == "damping+mass" for s in second) == 2 * 2 * 2 * 3
+    assert {s.strength for s in specs if s.withheld == "none"} == {"realistic"}
+    assert len({s.key for s in specs}) == len(specs)
+    assert any("pairs skipped" in n for n in notes) and any("wide skipped" in n for n in notes)
+
+
+def test_an_explicit_pair_is_named_in_catalogue_order():
+    specs, _ = mv.plan(worlds=["multibody"], withheld=["mass+damping"], strengths=["subtle"], seeds=[1],
+                       matrices=["wide"], n_cae=[150])
+    assert [(s.withheld, s.strength, s.seed, s.matrix, s.n_cae) for s in specs] == [
+        ("damping+mass", "subtle", 1, "wide", 150)]
+
+
+def _iso_table(rows):
+    """An iso_table.csv frame from (test, model, window, overall) rows (other scores 0)."""
+    frame = pd.DataFrame(rows, columns=["test_id", "model", "window_ms", "overall"]).assign(inputs="state")
+    return frame.assign(corridor=0.0, phase=0.0, magnitude=0.0, slope=0.0)[list(loto.COLUMNS)]
+
+
+def test_losses_worst_margin_and_coverage_by_hand():
+    cae = {("T01", "0-20"): 0.90, ("T01", "0-40"): 0.80, ("T01", "0-60"): 0.70,
+           ("T02", "0-20"): 0.60, ("T02", "0-40"): 0.50, ("T02", "0-60"): 0.40}
+    # model - CAE: +0.02, -0.005, -0.02 | -0.06, 0.0, -0.011  -> lost 3 by > 0.01, 1 by > 0.05
+    k1 = dict(zip(cae, (0.92, 0.795, 0.68, 0.54, 0.50, 0.389)))
+    auto = dict(zip(cae, (0.95, 0.85, 0.75, 0.65, 0.55, 0.45)))  # a label the code does not know of
+    rows = [(t, "CAE", w, s) for (t, w), s in cae.items()]
+    rows += [(t, "K1", w, s) for (t, w), s in k1.items()] + [(t, "auto", w, s) for (t, w), s in auto.items()]
+    coverage = pd.DataFrame({"test_id": ["T01", "T02", "T01", "T02"], "inputs": "state",
+                             "model": ["K1", "K1", "auto", "auto"], "coverage": [0.9, 0.7, 1.0, 1.0],
+                             "coverage_latent": [0.5, 0.3, 0.2, 0.4]})
+    got = {r["model"]: r for r in mv.score_rows(_iso_table(rows), coverage)}
+    assert list(got) == ["K1", "auto"]
+    r = got["K1"]
+    assert (r["n_tests"], r["n_test_windows"], r["lost_0_01"], r["lost_0_05"]) == (2, 6, 3, 1)
+    assert r["worst_margin"] == pytest.approx(-0.06) and (r["worst_test"], r["worst_window"]) == ("T02", "0-20")
+    assert r["iso_0_60"] == pytest.approx((0.68 + 0.389) / 2) and r["cae_0_20"] == pytest.approx(0.75)
+    assert (r["coverage"], r["coverage_latent"]) == (pytest.approx(0.8), pytest.approx(0.4))
+    assert (got["auto"]["lost_0_01"], got["auto"]["worst_margin"]) == (0, pytest.approx(0.05))
+
+
+def test_summary_share_and_worst_over_campaigns():
+    rows = [dict(world="first", withheld=w, strength="realistic", seed=0, matrix="table1", n_cae=20, inputs="state",
+                 model="K1", n_tests=11, iso_0_60=0.9, cae_0_60=0.8, n_test_windows=33, lost_0_01=lost,
+                 lost_0_05=big, worst_margin=worst, worst_test="T03", worst_window="0-40", coverage=cov,
+                 coverage_latent=cov)
+            for w, lost, big, worst, cov in (("none", 3, 0, -0.02, 0.9), ("paper", 8, 2, -0.3, 0.8))]
+    s = mv.summarise(pd.DataFrame(rows)).iloc[0]
+    assert s["test_windows"] == 66 and s["share_beat_or_tie"] == pytest.approx(1 - 11 / 66)
+    assert (s["lost_0_05"], s["worst_margin"]) == (2, -0.3) and s["worst_at"].startswith("first table1 cae20 paper")
+    assert s["coverage"] == pytest.approx(0.85)
+
+
+@pytest.fixture
+def one_fold(monkeypatch):
+    """The real evaluate, on one held-out test only (the matrix runs every test)."""
+    def evaluate(campaign, **kwargs):
+        return loto.evaluate(campaign, holdout=("T09",), **kwargs)
+    monkeypatch.setattr(mv, "evaluate", evaluate)
+
+
+def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
+    spread = dict(worlds=["first"], withheld=["none"], strengths=["realistic"], seeds=[0], matrices=["table1"],
+                  n_cae=[20], inputs=["state"], ks=[1], n_samples=20, n_jobs=1, progress=None)
+    first = mv.validate_method(tmp_path / "out", **spread)
+    table = pd.read_csv(tmp_path / "out" / "method_matrix.csv")
+    assert list(table.columns[:8]) == list(mv.KEY_COLUMNS)
+    assert {"iso_0_20", "cae_0_40", "iso_0_60", "lost_0_01", "lost_0_05", "worst_margin", "worst_test",
+            "worst_window", "coverage", "coverage_latent"} <= set(table.columns)
+    assert len(table) == 1 and table.loc[0, "model"] == "K1" and table.loc[0, "n_test_windows"] == 3
+    assert (tmp_path / "out" / "method_summary.csv").is_file()
+    assert "| state | K1 |" in (tmp_path / "out" / "method_matrix.md").read_text()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("resume must reuse the work folder")
+    monkeypatch.setattr(mv, "evaluate", refuse)
+    monkeypatch.setattr(mv.CampaignSpec, "generate", refuse)
+    again = mv.validate_method(tmp_path / "again", work=tmp_path / "out" / "work", **spread)
+    pd.testing.assert_frame_equal(again.table, first.table)
+    assert (tmp_path / "again" / "method_matrix.csv").read_bytes() == (tmp_path / "out" / "method_matrix.csv").read_bytes()
+
+
+@pytest.mark.parametrize("args, flag", [
+    (["--worlds", "third"], "--worlds"),
+    (["--withheld", "dampin"], "--withheld"),
+    (["--withheld", "damping+mass", "--worlds", "first"], "--withheld"),
+    (["--withheld", "mass+mass", "--worlds", "multibody"], "--withheld"),
+    (["--strengths", "strong"], "--strengths"),
+    (["--matrices", "table2"], "--matrices"),
+    (["--matrices", "wide", "--worlds", "first"], "--matrices"),
+    (["--inputs", "speed"], "--inputs"),
+    (["--k", "0"], "--k"),
+])
+def test_bad_options_exit_2_naming_the_option(tmp_path, capsys, args, flag):
+    assert main(["world", "validate-method", "--out", str(tmp_path / "out"), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and flag in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_library_names_the_argument():
+    with pytest.raises(InputError, match="n_samples"):
+        mv.validate_method("unused", **mv.QUICK | {"n_samples": 0}, progress=None)
