@@ -174,6 +174,15 @@ def test_user_campaign_with_one_test_is_refused(tmp_path):
     assert "needs at least 2 tests, found 1" in done.stdout + done.stderr
 
 
+def test_method_matrix_is_its_own_target_with_the_config_spread(tmp_path):
+    config = write_config(tmp_path / "c.yaml", validation={"method": {"worlds": ["multibody"], "seeds": [4]}})
+    assert "validate_method" not in job_counts(snakemake(tmp_path, "-n", configfile=config).stdout)
+    done = snakemake(tmp_path, "-n", "-p", "results/validation/method_matrix.csv", configfile=config)
+    assert job_counts(done.stdout) == {"validate_method": 1}
+    assert "world validate-method --worlds multibody --withheld single pairs paper none" in done.stdout
+    assert "--seeds 4 " in done.stdout and "--n-cae 150 1000" in done.stdout
+
+
 def test_lint_is_clean_except_the_conda_advice(tmp_path):
     """The only lint is the conda/container advice: this workflow installs with pip (docs/workflow.md)."""
     done = snakemake(tmp_path, "--lint", check=False)

@@ -83,7 +83,7 @@ def fold_files(pattern):
 
 
 def all_outputs(wildcards):
-    """The final targets: the table, its renderings, the summary figure, tracking and diagnosis."""
+    """The final targets: the table, its renderings, the summary figure, tracking, diagnosis, validations."""
     out = [
         f"{RESULTS}/iso_table.csv",
         f"{RESULTS}/tables/summary.md",
@@ -96,4 +96,6 @@ def all_outputs(wildcards):
         out.append(f"{RESULTS}/diagnosis/diagnosis.json")
     if config["validation"]["enabled"]:
         out.append(f"{RESULTS}/diagnosis/validation.csv")
+    if config["validation"]["method"]["enabled"]:
+        out.append(f"{RESULTS}/validation/method_matrix.csv")
     return out

@@ -1,5 +1,6 @@
 # The sim-to-real gap diagnosis of the campaign (`crashfuse diagnose`) and, on request, the
-# withheld-effect validation matrix (`crashfuse world validate`, the one reader of world.json).
+# withheld-effect validation matrix (`crashfuse world validate`, the one reader of world.json)
+# and the method validation matrix (`crashfuse world validate-method`).
 
 DIAG = config["diagnosis"]
 
@@ -41,3 +42,27 @@ rule validate_diagnosis:
     shell:
         "crashfuse world validate --strengths {params.strengths} --seeds {params.seeds} "
         "--out {params.out:q} > {log:q} 2>&1"
+
+
+MATRIX = config["validation"]["method"]
+
+
+rule validate_method:
+    output:
+        table=f"{RESULTS}/validation/method_matrix.csv",
+        summary=f"{RESULTS}/validation/method_summary.csv",
+        markdown=report(f"{RESULTS}/validation/method_matrix.md", category="Validation"),
+    params:
+        out=lambda wildcards, output: Path(output.table).parent,
+        spread=(
+            f"--worlds {' '.join(MATRIX['worlds'])} --withheld {' '.join(MATRIX['withheld'])} "
+            f"--strengths {' '.join(MATRIX['strengths'])} --seeds {' '.join(map(str, MATRIX['seeds']))} "
+            f"--matrices {' '.join(MATRIX['matrices'])} --n-cae {' '.join(map(str, MATRIX['n_cae']))} "
+            f"--inputs {' '.join(MATRIX['inputs'])} --k {' '.join(map(str, MATRIX['ks']))} "
+            f"--samples {MATRIX['samples']} --seed {MATRIX['seed']}"
+        ),
+    threads: 2
+    log:
+        f"{RESULTS}/logs/validate_method.log",
+    shell:
+        "crashfuse world validate-method {params.spread} --jobs {threads} --out {params.out:q} > {log:q} 2>&1"
