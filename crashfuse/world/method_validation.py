@@ -236,9 +236,10 @@ def evaluation_key(inputs, ks, n_samples, random_state) -> str:
     return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}-n{n_samples}-seed{random_state}"
 
 
-def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int,
-                      n_jobs: int) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
-    """The campaign's ISO table and coverage, from ``out`` if there, else evaluated and written there.
+def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int, n_jobs: int,
+                      progress=None) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
+    """The campaign's ISO table and coverage, from ``out`` if there, else evaluated and written there
+    (``progress`` receives evaluate's line per fold).
 
     ``coverage.csv`` is written before ``iso_table.csv``: an ISO table means a complete evaluation.
 
@@ -251,7 +252,7 @@ def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, rando
     if iso_path.is_file() and cov_path.is_file():
         return pd.read_csv(iso_path), pd.read_csv(cov_path), True
     result = evaluate(read_campaign(folder), ks=ks, inputs=inputs, n_samples=n_samples, random_state=random_state,
-                      n_jobs=n_jobs, progress=None)
+                      n_jobs=n_jobs, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
     for frame, path in ((result.coverage, cov_path), (result.iso_table, iso_path)):
         with atomic_path(path) as tmp:
@@ -344,7 +345,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
     n_jobs : int
         Worker processes for each campaign's folds.
     progress : callable, optional
-        Receives one line per campaign.
+        Receives one line per campaign, and an indented line per fold.
 
     Returns
     -------
@@ -372,7 +373,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
         t1 = time.perf_counter()
         folder = campaign_folder(spec, work, say)
         iso, cov, reused = evaluate_campaign(folder, work / "evaluations" / spec.key / eval_key, inputs, ks,
-                                             n_samples, random_state, n_jobs)
+                                             n_samples, random_state, n_jobs, lambda line: say(f"  {line}"))
         scored = score_rows(iso, cov)
         rows += [{**dataclasses.asdict(spec), **row} for row in scored]
         say(f"[{i}/{len(specs)}] {spec.key}: " + ", ".join(
