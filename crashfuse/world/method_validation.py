@@ -141,6 +141,7 @@ def plan(worlds=DEFAULTS["worlds"], withheld=DEFAULTS["withheld"], strengths=DEF
     matrices = _choices(matrices, MATRICES, "matrices")
     seeds = _counts(seeds, "seeds", minimum=0)
     sizes = _counts(n_cae, "n_cae", minimum=1)
+    withheld = _as_tuple(withheld)
     labels = _withheld_labels(withheld, worlds)
     specs, notes = [], []
     for world in worlds:
@@ -182,7 +183,6 @@ def _as_tuple(values) -> tuple:
 
 def _withheld_labels(tokens, worlds) -> dict:
     """Per world, the withheld labels of ``tokens`` in order (see :func:`plan`)."""
-    tokens = _as_tuple(tokens)
     if not tokens:
         raise InputError("expected withheld effects or groups, got none", field="withheld")
     out = {world: [] for world in worlds}
