@@ -212,10 +212,9 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
 
     def _shrink(self, g):
         """Shrinkage of cluster GP ``g``: a function of its latent variance (y units squared), or None."""
-        prior = getattr(self, "residual_var_", None)
-        if prior is None:
+        if self.residual_var_ is None:
             return None
-        tau2 = prior[g]
+        tau2 = self.residual_var_[g]
         return lambda var: tau2 / (tau2 + var) if tau2 > 0 else np.zeros_like(var)
 
     def _cluster_predict(self, g, X, return_std=False):
