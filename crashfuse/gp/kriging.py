@@ -327,6 +327,24 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         return grouped_cv_log_density(self._eta(), self.Z_fit_, self.u_fit_, self._design(self.Z_fit_), g)
 
     @limit_blas
+    def grouped_cv_residuals(self):
+        """Leave-one-group-out residuals on the hyperparameter-fit subset at the fitted hyperparameters.
+
+        The residuals :meth:`grouped_cv_log_density` scores, in normalised-output units (compare them with
+        ``u_fit_``, the outputs themselves).
+
+        Returns
+        -------
+        ndarray, shape (n_fit_,) or None
+            None without at least two groups, or where a matrix is numerically singular.
+        """
+        check_is_fitted(self)
+        if self.groups_fit_ is None or len(np.unique(self.groups_fit_)) < 2:
+            return None
+        res = grouped_residuals(self._eta(), self.Z_fit_, self.u_fit_, self._design(self.Z_fit_), self.groups_fit_)
+        return None if res is None else res[0]
+
+    @limit_blas
     def grouped_residuals(self, X, y, groups):
         """Leave-one-group-out residuals at the fitted hyperparameters, conditioned on ``(X, y)``.
 

@@ -17,9 +17,12 @@ from crashfuse.errors import InputError
 from crashfuse.gp.kriging import SEED_MAX, KrigingGP
 from crashfuse.gp.threads import controller, limit_blas
 
-__all__ = ["GMMGPBias", "TooFewPointsError", "THETA_MAX_CANDIDATES"]
+__all__ = ["GMMGPBias", "TooFewPointsError", "THETA_MAX_CANDIDATES", "MIN_CLUSTER_TESTS"]
 
 THETA_MAX_CANDIDATES = (1.0, 10.0, 100.0, 1000.0)  # theta upper bounds GMMGPBias chooses from by grouped CV
+# A pooled model's cluster GP is judged by leaving its tests out one at a time: with fewer than three
+# the judgement (and the GP's own theta bound and band calibration) is impossible.
+MIN_CLUSTER_TESTS = 3
 
 
 class TooFewPointsError(ValueError):
@@ -65,6 +68,13 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         prediction to the pooled GP's, not to the cluster's trend; the test-to-test scatter
         is the pooled GP's (the residual GPs estimate none). ``False``: the paper's clusters, each
         GP on its own points' bias.
+    min_cluster_tests : int
+        With ``pooled`` and ``groups``: a cluster GP speaks only if its points come from at least
+        this many tests and, each of them left out in turn, it predicts their residual better
+        than 0 (the pooled model) does; otherwise its residual is 0. What it says is shrunk
+        towards 0 by its own uncertainty against the variance it predicts out of sample
+        (``residual_var_``), so its band cannot outgrow that variance and its mean defers to the
+        pooled model where it is unsure.
     random_state : int, RandomState or None
         Seeds the mixture and the GPs.
 
@@ -82,6 +92,10 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
     n_points_per_cluster_ : ndarray of int, shape (len(gps_),)
     labels_ : ndarray of int, shape (n,)
         GP index of each training point.
+    residual_var_ : ndarray, shape (len(gps_),) or None
+        With a pooled GP and groups: per cluster GP, the variance of its points' residual that it
+        predicts for a left-out test (y units squared), the prior variance its prediction is shrunk
+        with; 0 for a GP that does not speak. None otherwise (the cluster GPs are used as fitted).
     """
 
     def __init__(self, *, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
@@ -89,8 +103,9 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
                  max_fit_points=300, max_condition_points=None, normalize_y=True, n_init=5,
                  reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None,
                  theta_max_candidates=THETA_MAX_CANDIDATES, calibrate_variance=True, estimate_scatter=True,
-                 pooled=False):
+                 pooled=False, min_cluster_tests=MIN_CLUSTER_TESTS):
         self.pooled = pooled
+        self.min_cluster_tests = min_cluster_tests
         self.theta_max_candidates = theta_max_candidates
         self.calibrate_variance = calibrate_variance
         self.estimate_scatter = estimate_scatter
@@ -173,7 +188,49 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         self.gps_ = [self._gp(rng.randint(SEED_MAX), **residual).fit(
             X[self.labels_ == g], y[self.labels_ == g], None if groups is None else groups[self.labels_ == g])
             for g in range(n_gps)]
+        self.residual_var_ = None
+        if self.pooled_gp_ is not None and groups is not None:
+            self.residual_var_ = np.array([self._residual_prior(gp, groups[self.labels_ == g])
+                                           for g, gp in enumerate(self.gps_)])
         return self
+
+    def _residual_prior(self, gp, groups):
+        """Prior variance of one cluster GP (y units squared): the part of its residual its tests show it predicts.
+
+        ``mean(r^2) - mean(e^2)``, with ``r`` the pooled residual it was fitted on and ``e`` its
+        leave-one-test-out residuals (closed form at its hyperparameters, on its hyperparameter-fit
+        subset); 0 - the GP does not speak - when that is not positive or its points come from
+        fewer than ``min_cluster_tests`` tests. On noise the GP predicts a left-out test no better
+        than 0 does, so its prior variance, hence its residual, is about 0.
+        """
+        if len(np.unique(groups)) < max(self.min_cluster_tests, 2):
+            return 0.0
+        e = gp.grouped_cv_residuals()
+        if e is None:
+            return 0.0
+        return max(0.0, float(np.mean(gp.u_fit_**2) - np.mean(e**2))) * gp.y_std_**2
+
+    def _shrink(self, g):
+        """Shrinkage of cluster GP ``g``: a function of its latent variance (y units squared), or None."""
+        if self.residual_var_ is None:
+            return None
+        tau2 = self.residual_var_[g]
+        return lambda var: tau2 / (tau2 + var) if tau2 > 0 else np.zeros_like(var)
+
+    def _cluster_predict(self, g, X, return_std=False):
+        """Cluster GP ``g``'s mean (and latent std) at ``X``, shrunk towards 0 with a pooled GP.
+
+        With the prior variance ``tau^2`` of :attr:`residual_var_`, the GP's ``N(mu, s^2)`` becomes
+        ``N(w mu, w s^2)`` with ``w = tau^2 / (tau^2 + s^2)``: the precision-weighted combination
+        with ``N(0, tau^2)``. Where the GP is sure (``s^2 << tau^2``) nothing changes; where its
+        tests say nothing the residual goes to 0 and its variance stays below ``tau^2``.
+        """
+        gp, shrink = self.gps_[g], self._shrink(g)
+        if shrink is None:
+            return gp.predict(X, return_std=return_std)
+        mu, sd = gp.predict(X, return_std=True)
+        w = shrink(sd**2)
+        return (w * mu, np.sqrt(w) * sd) if return_std else w * mu
 
     def _cluster_view(self, X, fit=False):
         """Standardised clustering columns of ``X``, shape (n, d_cluster)."""
@@ -256,14 +313,14 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         w = self._weights(X)
         pooled = self._pooled(X, return_std)
         mean, second = np.zeros(len(X)), np.zeros(len(X))
-        for g, gp in enumerate(self.gps_):
+        for g in range(len(self.gps_)):
             use = w[:, g] > 0
             if not use.any():
                 continue
             if not return_std:
-                mean[use] += w[use, g] * gp.predict(X[use])
+                mean[use] += w[use, g] * self._cluster_predict(g, X[use])
                 continue
-            mu, sd = gp.predict(X[use], return_std=True)
+            mu, sd = self._cluster_predict(g, X[use], return_std=True)
             mean[use] += w[use, g] * mu
             second[use] += w[use, g] * (sd**2 + mu**2)
         if not return_std:
@@ -354,11 +411,26 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         w = self._weights(X)
         rng = check_random_state(random_state)
         out = np.zeros((n_samples, len(X)))
-        for g, gp in enumerate(self.gps_):
+        for g in range(len(self.gps_)):
             use = w[:, g] > 0
             seed = rng.randint(SEED_MAX)  # drawn for every GP so seeds don't depend on X
             if use.any():
-                out[:, use] += w[use, g] * gp.sample_functions(X[use], n_samples, seed)
+                out[:, use] += w[use, g] * self._cluster_draws(g, X[use], n_samples, seed)
         if self.pooled_gp_ is not None:
             out += self.pooled_gp_.sample_functions(X, n_samples, rng.randint(SEED_MAX))
         return out
+
+    def _cluster_draws(self, g, X, n_samples, seed):
+        """Joint draws of cluster GP ``g`` at ``X``, shape (n_samples, m), shrunk as in :meth:`_cluster_predict`.
+
+        A draw ``f`` becomes ``w mu + sqrt(w) (f - mu)``: mean ``w mu`` and pointwise variance ``w s^2``.
+        """
+        gp, shrink = self.gps_[g], self._shrink(g)
+        if shrink is not None and self.residual_var_[g] == 0:
+            return np.zeros((n_samples, len(X)))
+        draws = gp.sample_functions(X, n_samples, seed)
+        if shrink is None:
+            return draws
+        mu, sd = gp.predict(X, return_std=True)
+        w = shrink(sd**2)
+        return w * mu + np.sqrt(w) * (draws - mu)
