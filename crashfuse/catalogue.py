@@ -24,6 +24,7 @@ from crashfuse.errors import InputError
 
 V_REF = 15.0  # m/s: reference crush speed of the strain-rate headline (about 34 mph)
 F_REF = 5e5  # N: reference peak force of the unloading headline (about 30 g on a 1700 kg car)
+STRENGTHS = ("realistic", "subtle")  # named magnitudes of a world's effect laws
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,6 +127,33 @@ def check_effect(name: str, field: str = "effect") -> str:
     if name not in CATALOGUE:
         raise InputError(f"unknown effect {name!r}; expected one of {', '.join(EFFECTS)}", field=field)
     return name
+
+
+def params_at_strength(strength, realistic: dict, subtle: dict, effects) -> dict:
+    """One set of laws' parameters ``{"effect.param": value}`` (SI) at a named strength.
+
+    Parameters
+    ----------
+    strength : {"realistic", "subtle"}
+    realistic : dict
+        Every parameter at its realistic magnitude.
+    subtle : dict of str to dict
+        Per effect, the parameters that change when it is made subtle.
+    effects : iterable of str
+        Effects made subtle (only with ``strength="subtle"``).
+
+    Raises
+    ------
+    InputError
+        Field ``strength`` or ``withhold``: an unknown strength or effect.
+    """
+    if strength not in STRENGTHS:
+        raise InputError(f"unknown strength {strength!r}; expected one of {STRENGTHS}", field="strength")
+    params = dict(realistic)
+    if strength == "subtle":
+        for name in effects:
+            params.update(subtle[check_effect(name, field="withhold")])
+    return params
 
 
 def parse_params(items, known, positive=()) -> dict:

@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect, key, parse_params
-from crashfuse.errors import InputError
+from crashfuse.catalogue import params_at_strength as at_strength
 
 # Each parameter of the laws above as the catalogue quantity it is.
 QUANTITIES = {
@@ -101,7 +101,6 @@ SUBTLE = {
     "mass": {"mass.extra": 230.0},
 }
 
-STRENGTHS = ("realistic", "subtle")
 # Parameters that divide or set a mass: zero is as invalid as negative.
 POSITIVE = ("strain_rate.d", "strain_rate.q", "unloading.k", "unloading.n", "powertrain.mass_type1",
             "powertrain.mass_type2", "powertrain.k_mount", "powertrain.f_mount")
@@ -121,13 +120,7 @@ def params_at_strength(strength: str = "realistic", effects=EFFECTS) -> dict:
     dict
         ``{"effect.param": value}`` in SI for every parameter of :data:`QUANTITIES`.
     """
-    if strength not in STRENGTHS:
-        raise InputError(f"unknown strength {strength!r}; expected one of {STRENGTHS}", field="strength")
-    params = dict(REALISTIC)
-    if strength == "subtle":
-        for name in effects:
-            params.update(SUBTLE[check_effect(name, field="withhold")])
-    return params
+    return at_strength(strength, REALISTIC, SUBTLE, effects)
 
 
 def parse_overrides(items) -> dict:

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect, key, parse_params
-from crashfuse.errors import InputError
+from crashfuse.catalogue import params_at_strength as at_strength
 
 # Realistic magnitudes: chosen physical values, except `unloading.k`, fitted with the structure's
 # force levels to NHTSA 10146 (crashfuse.world.multibody.calibrate).
@@ -85,7 +85,6 @@ QUANTITIES = {
     "mass.c": "link_damping",
 }
 
-STRENGTHS = ("realistic", "subtle")
 # Parameters that divide or set a scale: zero is as invalid as negative.
 POSITIVE = ("strain_rate.v_ref", "strain_rate.p", "unloading.k", "unloading.set_ratio", "mass.k")
 
@@ -95,13 +94,7 @@ def params_at_strength(strength: str = "realistic", subtle_effects=()) -> dict:
 
     With ``strength="subtle"`` only ``subtle_effects`` take their subtle magnitudes.
     """
-    if strength not in STRENGTHS:
-        raise InputError(f"unknown strength {strength!r}; expected one of {', '.join(STRENGTHS)}", field="strength")
-    params = dict(REALISTIC)
-    if strength == "subtle":
-        for name in subtle_effects:
-            params.update(SUBTLE[check_effect(name, field="withhold")])
-    return params
+    return at_strength(strength, REALISTIC, SUBTLE, subtle_effects)
 
 
 def parse_overrides(items) -> dict:
