@@ -1,7 +1,7 @@
 """The catalogue of physical effects a real crash test has and a CAE model may miss.
 
 One catalogue serves two independent sets of laws: the synthetic world's (:mod:`crashfuse.world.effects`,
-how the physical tests are made) and the diagnosis' (:mod:`crashfuse.diagnosis.laws`, fitted to a
+how the physical tests are made) and the diagnosis' (:mod:`crashfuse.method.laws`, fitted to a
 campaign to explain its gap). Neither imports the other's physics; they share only what is here:
 the effect names, what each effect is physically, and the quantities that describe it, each by
 meaning with a unit. The entries describe the physics, not one law's equation, so laws of other

@@ -11,7 +11,7 @@ import yaml
 
 from crashfuse import catalogue
 from crashfuse.catalogue import CATALOGUE, EFFECTS, check_declaration, check_effect, key
-from crashfuse.diagnosis import laws
+from crashfuse.method import laws
 from crashfuse.errors import InputError
 from crashfuse.world import effects as world
 from crashfuse.world.multibody import effects as multibody

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from crashfuse.catalogue import EFFECTS
-from crashfuse.diagnosis import effect_fit as ef
+from crashfuse.method import effect_fit as ef
 from crashfuse.cli import main
 from crashfuse.diagnosis.diagnose import diagnose, write_diagnosis
 from crashfuse.signals.dynamics import State
-from crashfuse.diagnosis.laws import decel_fn, headline, parameters
+from crashfuse.method.laws import decel_fn, headline, parameters
 from crashfuse.errors import InputError
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
@@ -106,7 +106,7 @@ def test_fit_recovers_parameters_of_its_own_law(case):
     """Targets made by the laws themselves: the fit must find the parameters again."""
     rows = np.arange(len(case.test_ids))
     truth = {"damping.c": np.full(rows.size, 3000.0), "mass.extra": np.full(rows.size, 150.0)}
-    from crashfuse.diagnosis.laws import simulate
+    from crashfuse.method.laws import simulate
     made = simulate(case.plant, ("damping", "mass"), truth, ef.DT, case.n_steps).decel
     synthetic = ef.TestCase(case.test_ids, case.plant, made, np.ones_like(case.mask), case.time, case.cae_source)
     fits = ef.fit_folds(synthetic, ("damping", "mass"), [list(rows)])
@@ -132,7 +132,7 @@ def test_the_cae_speed_sensitivity_does_not_depend_on_the_cae_design():
     """Two seeds: the same tests and companion runs, different 60-run designs. The CAE force's slope
     in crush speed (regression over all runs) agrees, as secants between surrogate curves do not
     (docs/decisions.md, section 15)."""
-    from crashfuse.diagnosis.laws import crush_force_rate
+    from crashfuse.method.laws import crush_force_rate
 
     s = np.array([0.05, 0.2, 0.45])
     slopes = []

@@ -1,4 +1,4 @@
-"""The rate-aware CAE force of the effect laws (crashfuse.diagnosis.laws) on analytic rate-dependent models."""
+"""The rate-aware CAE force of the effect laws (crashfuse.method.laws) on analytic rate-dependent models."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from crashfuse.signals.dynamics import rollout
-from crashfuse.diagnosis.laws import Plant, crush_force_rate, crush_speed, simulate
+from crashfuse.method.laws import Plant, crush_force_rate, crush_speed, simulate
 from crashfuse.signals.pulse import Pulse
 from crashfuse.method.surrogate import CAECurve
 
@@ -126,7 +126,7 @@ def test_rate_hardening_acts_on_the_static_strength():
 def test_no_faster_curve_where_the_surrogate_cannot_predict():
     from types import SimpleNamespace
 
-    from crashfuse.diagnosis.effect_fit import _faster
+    from crashfuse.method.effect_fit import _faster
     from crashfuse.errors import InputError
 
     class Surrogate:

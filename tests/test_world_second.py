@@ -226,9 +226,9 @@ def test_parse_overrides():
         parse_overrides(["strain_rate.p=-1"])
 
 
-def test_does_not_import_the_first_worlds_physics_or_the_diagnosis_laws():
+def test_does_not_import_the_first_worlds_physics_or_the_effect_laws():
     banned = {"crashfuse.world.vehicle", "crashfuse.world.simulate", "crashfuse.world.effects",
-              "crashfuse.diagnosis.laws", "crashfuse.diagnosis"}
+              "crashfuse.method.laws", "crashfuse.diagnosis"}
     for path in (REPO / "crashfuse/world/multibody").glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom):

@@ -1,8 +1,8 @@
 """Sim-to-real gap diagnosis: where the gap lies, which effect causes it, how far it shrinks.
 
 1. Where: :func:`crashfuse.diagnosis.gap.locate_gap` (the bias field and its significant regions).
-2. Which: every effect of :mod:`crashfuse.catalogue` is a force law (:mod:`crashfuse.diagnosis.laws`) added to the CAE
-   dynamics with a few physical parameters, fitted to the tests (:mod:`crashfuse.diagnosis.effect_fit`).
+2. Which: every effect of :mod:`crashfuse.catalogue` is a force law (:mod:`crashfuse.method.laws`) added to the CAE
+   dynamics with a few physical parameters, fitted to the tests (:mod:`crashfuse.method.effect_fit`).
    Effects are compared on held-out evidence: the leave-one-test-out mean squared error of the
    CAE + effects rollout against the held-out test over its record. Greedy forward selection: each
    round fits every remaining effect together with those already chosen (all folds at once) and
@@ -30,9 +30,9 @@ import pandas as pd
 
 from crashfuse.catalogue import EFFECTS, V_REF, check_effect
 from crashfuse.gp.threads import one_blas_thread
-from crashfuse.diagnosis.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
+from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
                                             test_case)
-from crashfuse.diagnosis.laws import headline
+from crashfuse.method.laws import headline
 from crashfuse.errors import InputError
 from crashfuse.diagnosis.gap import locate_gap
 from crashfuse.io.atomic import atomic_path, write_text

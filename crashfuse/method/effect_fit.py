@@ -7,7 +7,7 @@ sets at once - the leave-one-test-out folds plus the all-tests fit - by minimisi
 difference between the CAE + effects rollout and the measured pulse over the record
 (``sum_t (a_pred - a_test)^2``), with a Levenberg-Marquardt solver vectorised over the folds,
 their starting points and the finite-difference Jacobian columns: every iteration is one
-batched rollout (:func:`crashfuse.diagnosis.laws.simulate`). Parameters are fitted in log space
+batched rollout (:func:`crashfuse.method.laws.simulate`). Parameters are fitted in log space
 within their physical bounds.
 """
 
@@ -18,7 +18,7 @@ import functools
 
 import numpy as np
 
-from crashfuse.diagnosis.laws import Plant, Param, crush_force_rate, curve_plant, parameters, simulate
+from crashfuse.method.laws import Plant, Param, crush_force_rate, curve_plant, parameters, simulate
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
 from crashfuse.method.projection import cae_curve
@@ -41,7 +41,7 @@ class TestCase:
     Attributes
     ----------
     test_ids : list of str
-    plant : crashfuse.diagnosis.laws.Plant
+    plant : crashfuse.method.laws.Plant
         One row per test: its CAE curve, nominal mass, powertrain label.
     target : ndarray, shape (n_tests, n_t)
         Measured deceleration (m/s^2) at ``time`` (0 where ``mask`` is False).
@@ -52,7 +52,7 @@ class TestCase:
     cae_source : list of str
         ``companion`` or ``surrogate`` per test.
     rate_aware : bool
-        Whether the CAE force follows the rollout's crush speed (:mod:`crashfuse.diagnosis.laws`).
+        Whether the CAE force follows the rollout's crush speed (:mod:`crashfuse.method.laws`).
     """
 
     test_ids: list
@@ -75,7 +75,7 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
     The CAE surrogate is fitted (on the CAE runs only) when a test names no companion run or its
     companion never reaches zero velocity (the unloading branch then comes from the surrogate), and
     for ``rate_aware``: the CAE force then follows the rollout's crush speed with the sensitivity
-    the CAE runs show (:func:`crashfuse.diagnosis.laws.crush_force_rate`), and beyond a test's CAE run's
+    the CAE runs show (:func:`crashfuse.method.laws.crush_force_rate`), and beyond a test's CAE run's
     maximum crush the reference is the surrogate's curve at :data:`FASTER` times its impact speed.
     It needs CAE runs at :data:`MIN_CAE_SPEEDS` distinct impact speeds; with fewer the CAE force
     depends on crush only (``TestCase.rate_aware`` False).
