@@ -139,7 +139,8 @@ def _world_validate_method(args) -> int:
 def _method_settings(args) -> dict:
     """The MethodConfig settings of ``_add_method_options`` (None: the input mode's default)."""
     return dict(assignment=args.assignment, extra_inputs=args.extra_inputs, n_grid=args.n_grid,
-                use_companion=args.use_companion, trend=args.trend, pooled=args.pooled, onset=args.onset)
+                use_companion=args.use_companion, trend=args.trend, pooled=args.pooled, onset=args.onset,
+                effects=args.effects[0] if args.effects in (["auto"], ["none"]) else tuple(args.effects))
 
 
 def _fit(args) -> int:
@@ -299,6 +300,10 @@ def _add_method_options(s) -> None:
     s.add_argument("--onset", action=argparse.BooleanOptionalAction, default=None,
                    help="correct the bias model's held-out error over the time since contact in the first 22 ms "
                         "(state inputs only; default: on for state)")
+    s.add_argument("--effects", nargs="+", default=["none"], metavar="EFFECT",
+                   help="physics-first hybrid: effect laws fitted to the training tests and added to the CAE "
+                        f"model before the bias is learnt - auto (chosen on the training tests), none (default) "
+                        f"or effects among: {' '.join(EFFECTS)}")
 
 
 # The real test sits beside the repository (../shared), never inside it.
@@ -573,7 +578,8 @@ def _add_track(sub) -> None:
 # (its parameter or MethodConfig field), the command line the flag it came from.
 _METHOD_FLAGS = {"k": "--k", "inputs": "--inputs", "holdout": "--holdout", "random_state": "--seed",
                  "assignment": "--assignment", "use_companion": "--use-companion", "extra_inputs": "--extra-inputs",
-                 "n_grid": "--n-grid", "trend": "--trend", "pooled": "--pooled", "onset": "--onset"}
+                 "n_grid": "--n-grid", "trend": "--trend", "pooled": "--pooled", "onset": "--onset",
+                 "effects": "--effects"}
 _FLAGS = {
     "fit": _METHOD_FLAGS,
     "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out"},

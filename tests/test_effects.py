@@ -124,9 +124,7 @@ def test_rate_hardening_acts_on_the_static_strength():
 
 
 def test_no_faster_curve_where_the_surrogate_cannot_predict():
-    from types import SimpleNamespace
-
-    from crashfuse.method.effect_fit import _faster
+    from crashfuse.method.effect_fit import faster_curve
     from crashfuse.errors import InputError
 
     class Surrogate:
@@ -138,6 +136,5 @@ def test_no_faster_curve_where_the_surrogate_cannot_predict():
                 raise InputError("cannot absorb the impact energy", field="v0")
             return _curve(v0)
 
-    test = SimpleNamespace(v0=15.0, front_weight=900.0, rear_weight=600.0, meta={})
-    assert _faster(Surrogate(20.0), test).v0 == pytest.approx(18.0)
-    assert _faster(Surrogate(16.0), test) is None
+    assert faster_curve(Surrogate(20.0), 15.0, 900.0, 600.0).v0 == pytest.approx(18.0)
+    assert faster_curve(Surrogate(16.0), 15.0, 900.0, 600.0) is None

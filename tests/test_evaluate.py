@@ -206,7 +206,8 @@ def test_workers_read_the_campaign_once_from_a_pickle_they_remove(campaign, surr
     from joblib import Parallel, delayed
 
     monkeypatch.setattr(ev.tempfile, "tempdir", str(tmp_path))
-    folds = [(MethodConfig(k=1, inputs="paper", **FAST), "T02"), (MethodConfig(k=1, inputs="state", **FAST), "T08")]
+    folds = [(MethodConfig(k=1, inputs="paper", **FAST), "T02", None),
+             (MethodConfig(k=1, inputs="state", **FAST), "T08", None)]  # no physics: the plain model
     settings = (5, "test")
     shared = list(ev._run_folds(campaign, surrogate, folds, 2, settings))
     assert not list(tmp_path.iterdir())

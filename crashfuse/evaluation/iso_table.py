@@ -2,7 +2,8 @@
 
 One row per held-out test x input mode x model x window: the keys ``test_id, inputs, model,
 window_ms``, then the five ISO/TS 18571 scores. ``model`` is ``CAE`` (the baseline: the test's
-companion CAE run) or ``K<n>`` (the bias model with n clusters); ``window_ms`` is ``<start>-<end>``
+companion CAE run) or ``K<n>`` (the bias model with n clusters), ``K<n>+<effects>`` for the
+physics-first hybrid (``K1+auto``, ``K2+strain_rate+powertrain``); ``window_ms`` is ``<start>-<end>``
 in whole ms. :mod:`crashfuse.reporting.tables` reads and tabulates it.
 """
 
@@ -16,13 +17,19 @@ SCORES = ("overall", "corridor", "phase", "magnitude", "slope")
 COLUMNS = (*KEYS, *SCORES)
 BASELINE = "CAE"
 WINDOWS = ("0-20", "0-40", "0-60")
-_MODEL = re.compile(r"K([1-9][0-9]*)")
+_MODEL = re.compile(r"K([1-9][0-9]*)(\+[a-z_]+(?:\+[a-z_]+)*)?")
 _WINDOW = re.compile(r"([0-9]+)-([0-9]+)")
 
 
-def model_label(k: int) -> str:
-    """The ``model`` label of the bias model with ``k`` clusters (``K1``, ``K2`` ...)."""
-    return f"K{int(k)}"
+def model_label(k: int, effects: str = "none") -> str:
+    """The ``model`` label of the bias model with ``k`` clusters (``K1``, ``K2`` ...) on the CAE model plus
+    ``effects`` (:func:`effects_label`; ``K1+auto`` ...)."""
+    return f"K{int(k)}" if effects == "none" else f"K{int(k)}+{effects}"
+
+
+def effects_label(effects) -> str:
+    """A :class:`crashfuse.method.config.MethodConfig` ``effects`` as text: ``none``, ``auto`` or ``a+b``."""
+    return effects if isinstance(effects, str) else "+".join(effects) or "none"
 
 
 def window_bounds(label: str) -> tuple[int, int]:
@@ -45,13 +52,16 @@ def window_key(label: str) -> str:
     return f"{start}_{end}"
 
 
-def model_order(model: str) -> tuple[int, int]:
-    """Sort key of a ``model`` label: CAE first, then K ascending."""
-    return (0, 0) if model == BASELINE else (1, int(_MODEL.fullmatch(model)[1]))
+def model_order(model: str) -> tuple[int, int, str]:
+    """Sort key of a ``model`` label: CAE first, then K ascending, each K's hybrids after it."""
+    if model == BASELINE:
+        return 0, 0, ""
+    m = _MODEL.fullmatch(model)
+    return 1, int(m[1]), m[2] or ""
 
 
 def is_model_label(label: str) -> bool:
-    """Whether ``label`` is a ``model`` label: ``CAE`` or ``K<n>`` with n >= 1."""
+    """Whether ``label`` is a ``model`` label: ``CAE`` or ``K<n>`` with n >= 1, optionally ``+<effects>``."""
     return label == BASELINE or _MODEL.fullmatch(label) is not None
 
 

@@ -28,12 +28,14 @@ import pandas as pd
 from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import BASELINE, COLUMNS, SCORES, WINDOWS, model_label, window_bounds
+from crashfuse.evaluation.iso_table import (BASELINE, COLUMNS, SCORES, WINDOWS, effects_label, model_label,
+                                           window_bounds)
 from crashfuse.evaluation.records import FoldRecord, fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.method.config import BIAS_SETTINGS, MethodConfig
+from crashfuse.method.hybrid import fit_physics
 from crashfuse.method.model import fit_model
 from crashfuse.method.projection import BRANCHES, INPUTS
 from crashfuse.method.rollout import predict
@@ -122,8 +124,9 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     configs = fold_configs(ks, inputs, random_state, settings)
     tests = _held_out(campaign, holdout)
     surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
-    folds = [(configs[mode, k], t) for mode in inputs for k in ks for t in tests]
     say = progress or (lambda line: None)
+    physics = _physics(campaign, surrogate, tests, next(iter(configs.values())).effects, n_jobs, say)
+    folds = [(configs[mode, k], t, physics[t]) for mode in inputs for k in ks for t in tests]
     say(f"evaluate: {len(folds)} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
     results = []
     for i, res in enumerate(_run_folds(campaign, surrogate, folds, n_jobs, (n_samples, band)), 1):
@@ -186,6 +189,19 @@ def fold_configs(ks, inputs, random_state: int, settings: dict) -> dict:
     return out
 
 
+def _physics(campaign, surrogate, tests, effects, n_jobs, say) -> dict:
+    """Per held-out test, the hybrid's effect laws fitted on the other tests (None without effects): one
+    fit shared by that test's folds of every K and input mode."""
+    if not effects:
+        return dict.fromkeys(tests)
+    say(f"evaluate: effect laws ({effects_label(effects)}) fitted per held-out test, {n_jobs} jobs")
+    trains = [[r for r in campaign.tests if r != t] for t in tests]
+    fits = Parallel(n_jobs=n_jobs)(delayed(fit_physics)(campaign, train, effects, surrogate) for train in trains)
+    for t, fit in zip(tests, fits):
+        say(f"  without {t}: {effects_label(fit.effects)}")
+    return dict(zip(tests, fits))
+
+
 def _run_folds(campaign, surrogate, folds, n_jobs, settings):
     """``_fold`` of every ``(config, test_id)`` in ``folds``, in order, on ``n_jobs`` processes.
 
@@ -215,18 +231,19 @@ def _load_shared(path):
         return pickle.load(fh)
 
 
-def _fold(campaign, surrogate, config: MethodConfig, test_id, n_samples, band) -> dict:
-    """Fit ``config`` without ``test_id``, predict its condition, rate and measure the band coverage."""
+def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band) -> dict:
+    """Fit ``config`` without ``test_id`` (with the hybrid's ``physics`` fitted without it, if any),
+    predict its condition, rate and measure the band coverage."""
     t0 = time.perf_counter()
     mode, k, random_state = config.inputs, config.k, config.random_state
-    model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate)
+    model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics)
     t1 = time.perf_counter()
     test = campaign.pulses[test_id].after_contact()
     pred = predict(model, test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
                    test.meta.get("drive"), n_samples=n_samples, random_state=random_state,
                    duration=float(test.time[-1]), dt=test.dt, band=band)
     t2 = time.perf_counter()
-    name = model_label(k)
+    name = model_label(k, effects_label(config.effects))
     iso = [_iso_row(test, pred.time, pred.decel, test_id, mode, name, w) for w in WINDOWS]
     frame = pred.frame()
     frame["test_decel_g"] = np.interp(pred.time, test.time, test.decel) / G0
@@ -241,7 +258,7 @@ def _fold(campaign, surrogate, config: MethodConfig, test_id, n_samples, band) -
         campaign={"name": campaign.root.name if campaign.root else "campaign", "hash": model.campaign_hash},
         conditions={"v0_mps": test.v0, "front_weight_kg": test.front_weight, "rear_weight_kg": test.rear_weight,
                     "powertrain": str(test.meta.get("powertrain")), "drive": str(test.meta.get("drive"))},
-        settings={**fold_settings(model.config, n_samples), "band": band},
+        settings={**fold_settings(model.config, n_samples), "band": band, **_chosen(model)},
         iso={row["window_ms"]: {s: row[s] for s in SCORES} for row in iso},
         metrics={"coverage_95_0_60": cov, "coverage_latent_95_0_60": cov_latent, "fit_seconds": t1 - t0,
                  "predict_seconds": t2 - t1,
@@ -262,9 +279,15 @@ def fold_settings(config: MethodConfig, n_samples: int) -> dict:
     """
     own = {"k", "inputs", "random_state", *BIAS_SETTINGS}
     flat = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in own}
+    flat["effects"] = effects_label(config.effects)
     flat.update({f"bias_{k}": v if isinstance(v, (str, bool, int, float)) or v is None else str(v)
                  for k, v in config.changed_bias_settings().items()})
     return {**flat, "n_samples": int(n_samples)}
+
+
+def _chosen(model) -> dict:
+    """The hybrid's effects as fitted in this fold (``auto``: as chosen on its training tests)."""
+    return {} if model.physics is None else {"effects_fitted": effects_label(model.physics.effects)}
 
 
 def _n_gps(model, branch) -> int:

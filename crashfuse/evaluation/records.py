@@ -68,7 +68,7 @@ class FoldRecord:
     @property
     def model(self) -> str:
         """The ``model`` label of this fold in ``iso_table.csv``."""
-        return model_label(self.k)
+        return model_label(self.k, self.settings.get("effects", "none"))
 
     def iso_metrics(self) -> dict[str, float]:
         """The ISO scores as flat metric names ``iso_<score>_<start>_<end>`` (e.g. ``iso_overall_0_60``)."""

@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 
 from crashfuse.errors import InputError
+from crashfuse.method.hybrid import check_effects
 from crashfuse.method.mixture import GMMGPBias
 from crashfuse.method.projection import INPUTS, TARGETS, VELOCITY
 
@@ -92,6 +93,10 @@ class MethodConfig:
     velocity : {"linear", "sqrt"}
         The ``state`` mode's velocity coordinate; ``sqrt``: sign(v) sqrt(|v|), a concave rate
         coordinate (docs/method-rollout.md).
+    effects : "auto" or tuple of str
+        The physics-first hybrid (:mod:`crashfuse.method.hybrid`): catalogue effects whose laws are
+        fitted to the training tests and added to the CAE model before the bias is learnt; ``auto``
+        chooses them on the training tests; empty (default): the GMM-GPR model alone.
     n_restarts, max_fit_points, max_condition_points, min_cluster_points, theta_max_candidates, calibrate_variance, estimate_scatter
         :class:`crashfuse.method.mixture.GMMGPBias` settings (``BIAS_SETTINGS``), defaults its own.
 
@@ -115,6 +120,7 @@ class MethodConfig:
     onset: bool | None = None
     weights: bool = True
     velocity: str = "sqrt"
+    effects: tuple | str = ()
     n_restarts: int = _BIAS_DEFAULTS["n_restarts"]
     max_fit_points: int | None = _BIAS_DEFAULTS["max_fit_points"]
     max_condition_points: int | None = _BIAS_DEFAULTS["max_condition_points"]
@@ -136,6 +142,7 @@ class MethodConfig:
         for name in ("extra_inputs", "use_companion", "pooled", "onset", "weights", "calibrate_variance",
                      "estimate_scatter"):
             self._set(name, _boolean(name, getattr(self, name)))
+        self._set("effects", check_effects(self.effects))
         self._set("n_grid", _integer("n_grid", self.n_grid, 2, "n_grid", optional=True))
         self._set("random_state", _integer("random_state", self.random_state, 0, "seed"))
         self._set("n_restarts", _integer("n_restarts", self.n_restarts, 0, "n_restarts"))

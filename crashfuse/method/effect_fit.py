@@ -102,18 +102,19 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
     mask = np.array([time <= p.time[-1] + 1e-12 for p in pulses])
     s_hi = S_HI_FACTOR * max(max(c.s[-1], c.s_max) for c in curves)
     labels = [_label(campaign, t) for t in campaign.tests]
-    faster = [_faster(surrogate, p) for p in pulses] if rate_aware else None
+    faster = ([faster_curve(surrogate, p.v0, p.front_weight, p.rear_weight, p.meta.get("powertrain"), p.meta.get("drive"))
+               for p in pulses] if rate_aware else None)
     force_rate = functools.partial(crush_force_rate, [campaign.pulses[r] for r in campaign.cae]) if rate_aware else None
     plant = curve_plant(curves, [p.mass for p in pulses], labels, s_hi, faster, force_rate)
     return TestCase(list(campaign.tests), plant, target, mask, time, sources, rate_aware)
 
 
-def _faster(surrogate: CAESurrogate, test):
-    """The surrogate's CAE curve of a test's vehicle at :data:`FASTER` times its impact speed, or None
-    where it cannot absorb that impact energy (far outside the CAE runs)."""
+def faster_curve(surrogate: CAESurrogate, v0: float, front_weight: float, rear_weight: float, powertrain=None,
+                 drive=None):
+    """The surrogate's CAE curve of a vehicle at :data:`FASTER` times its impact speed ``v0`` (m/s), or
+    None where it cannot absorb that impact energy (far outside the CAE runs)."""
     try:
-        return surrogate.curve(FASTER * test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
-                               test.meta.get("drive"))
+        return surrogate.curve(FASTER * v0, front_weight, rear_weight, powertrain, drive)
     except InputError:
         return None
 
@@ -187,6 +188,15 @@ def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = No
     best = np.argmin(cost, axis=0)
     z = z.reshape(n_start, len(train_sets), -1)[best, np.arange(len(train_sets))]
     return FoldFits(tuple(effects), params, np.exp(z), cost[best, np.arange(len(train_sets))])
+
+
+def warm_start(case: TestCase, current: FoldFits, effect: str) -> np.ndarray | None:
+    """Starting points of ``current``'s effects plus ``effect``: per training set, the values fitted
+    there and the new effect's first listed start (None when ``current`` fitted nothing)."""
+    if current.theta.shape[1] == 0:
+        return None
+    new = [p.start[0] for p in parameters_to_fit(case, (effect,))]
+    return np.hstack([current.theta, np.tile(new, (current.theta.shape[0], 1))])
 
 
 def _starts(params, n_sets: int, extra) -> np.ndarray:

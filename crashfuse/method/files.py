@@ -15,6 +15,7 @@ from sklearn.preprocessing import StandardScaler
 from crashfuse.gp.kriging import KrigingGP
 from crashfuse.method.mixture import GMMGPBias
 from crashfuse.method.config import MethodConfig
+from crashfuse.method.hybrid import PhysicsFirst
 from crashfuse.method.model import Condition, FittedModel
 from crashfuse.method.onset import OnsetCorrectedBias
 from crashfuse.method.projection import nominal_time
@@ -32,5 +33,6 @@ TYPES = (
     GaussianMixture,  # GMMGPBias.gmm_
     StandardScaler,  # GMMGPBias.scaler_, KrigingGP's input scaling
     OnsetCorrectedBias,  # the state mode's loading branch
+    PhysicsFirst,  # FittedModel.physics: the hybrid's effect laws
     nominal_time,  # OnsetCorrectedBias.time: functools.partial(nominal_time, columns)
 )

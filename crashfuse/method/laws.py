@@ -74,6 +74,7 @@ QUANTITIES = {
 MOUNT_YIELD_TRAVEL = 0.01  # m: powertrain mounts yield after 1 cm of relative travel (k_m = f_mount / 1 cm)
 RUNS_PER_COEF = 3  # moving CAE runs per regression coefficient before a crush's force-speed fit is used
 
+N_S, N_U = 2048, 512  # loading and unloading table points of a Plant
 
 @dataclasses.dataclass(frozen=True)
 class Param:
@@ -142,7 +143,7 @@ class Plant:
 
     @classmethod
     def from_curves(cls, curves, mass, group, labels, s_hi: float, faster=None, force_rate=None,
-                    n_s: int = 2048, n_u: int = 512) -> "Plant":
+                    n_s: int = N_S, n_u: int = N_U) -> "Plant":
         """Tabulate CAE curves (:class:`crashfuse.method.surrogate.CAECurve`) up to crush ``s_hi`` (m).
 
         ``faster``, if given, holds per curve a CAE curve of the same vehicle at a higher impact
@@ -162,6 +163,11 @@ class Plant:
         dadv, dadv2 = (b / mass[:, None] + np.zeros_like(a) for b in (b1, b2))
         return cls(s[1], u[1], a - dadv * v - dadv2 * v ** 2, dadv, dadv2, np.array([c.unloading(u) for c in curves]),
                    mass, np.array([c.v0 for c in curves]), np.asarray(group, int), tuple(labels))
+
+    @property
+    def s_hi(self) -> float:
+        """Crush (m) the loading tables reach."""
+        return self.s_step * (self.a_rest.shape[1] - 1)
 
     def subset(self, rows) -> "Plant":
         """The plant of the conditions ``rows`` (in that order, repeats allowed)."""

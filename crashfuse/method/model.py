@@ -29,12 +29,15 @@ from crashfuse.errors import InputError
 from crashfuse.io import persist
 from crashfuse.io.campaign import Campaign
 from crashfuse.method.config import MethodConfig
-from crashfuse.method.projection import BRANCHES, BiasData, bias_data, bias_inputs, column_velocity, nominal_time
+from crashfuse.method.effect_fit import faster_curve
+from crashfuse.method.hybrid import AUTO, PhysicsFirst, fit_physics
+from crashfuse.method.projection import (BRANCHES, BiasData, bias_data, bias_inputs, cae_curve, column_velocity,
+                                         nominal_time)
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
 # are refused: refit); a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 5, "surrogate": 2}
+FORMAT = {"model": 6, "surrogate": 2}
 # What a user does about a file of another format.
 _REFIT = {"model": "refit with `crashfuse fit`", "surrogate": "refit with `crashfuse prepare`"}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
@@ -97,6 +100,9 @@ class FittedModel:
         :meth:`Campaign.content_hash` of the campaign fitted on.
     version : str
         crashfuse version that fitted it.
+    physics : PhysicsFirst or None
+        The physics-first hybrid's effect laws (``config.effects``), fitted on the training tests;
+        every CAE curve of the model is then CAE + effects (:meth:`cae_curve`).
     """
 
     surrogate: CAESurrogate
@@ -112,6 +118,7 @@ class FittedModel:
     categories: dict
     campaign_hash: str
     version: str = crashfuse.__version__
+    physics: PhysicsFirst | None = None
 
     @property
     def inputs(self) -> str:
@@ -163,7 +170,8 @@ class FittedModel:
         return float(self.ranges["x_max"].get(branch, 0.0))
 
     def cae_curve(self, cond: Condition) -> CAECurve:
-        """The CAE curve at ``cond``: the companion run where ``use_companion`` and one matches, else the surrogate.
+        """The CAE curve at ``cond``: the companion run where ``use_companion`` and one matches, else the
+        surrogate; with the hybrid's effect laws added (:attr:`physics`).
 
         Raises
         ------
@@ -173,10 +181,19 @@ class FittedModel:
         """
         pulse = self._companion(cond) if self.config.use_companion else None
         if pulse is None:
-            return self._surrogate_curve(cond, check=True)
-        # Built as the training data built it (projection.cae_curve): a companion that does not reach
-        # separation in its record borrows the surrogate's unloading branch.
-        return CAECurve.from_pulse(pulse, unloading_from=self._surrogate_curve(cond, False))
+            curve = self._surrogate_curve(cond, check=True)
+        else:
+            # Built as the training data built it (projection.cae_curve): a companion that does not reach
+            # separation in its record borrows the surrogate's unloading branch.
+            curve = CAECurve.from_pulse(pulse, unloading_from=self._surrogate_curve(cond, False))
+        return self._with_effects(curve, cond)
+
+    def _with_effects(self, curve: CAECurve, cond: Condition) -> CAECurve:
+        if self.physics is None or not self.physics.effects:
+            return curve
+        return self.physics.curve(curve, cond.front_weight + cond.rear_weight, cond.powertrain,
+                                  faster_curve(self.surrogate, cond.v0, cond.front_weight, cond.rear_weight,
+                                                             cond.powertrain, cond.drive), cond.front_weight, cond.rear_weight)
 
     def _surrogate_curve(self, cond: Condition, check: bool) -> CAECurve:
         lo, hi = self.ranges["cae_condition"]
@@ -272,7 +289,7 @@ def _load(kind: str, cls, path):
 
 
 def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
-              surrogate: CAESurrogate | None = None) -> FittedModel:
+              surrogate: CAESurrogate | None = None, physics: PhysicsFirst | None = None) -> FittedModel:
     """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
 
     Parameters
@@ -290,6 +307,10 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         Otherwise fitted here, seeded with ``config.random_state`` as is, as
         :func:`crashfuse.evaluation.loto.evaluate` and ``crashfuse prepare`` do (so fitting with
         holdout T is T's fold).
+    physics : PhysicsFirst, optional
+        The effect laws of ``config.effects`` already fitted on this fit's training tests
+        (:func:`crashfuse.method.hybrid.fit_physics`; shared by the folds of every K and input
+        mode that hold out the same test). Otherwise fitted here when ``config.effects`` names any.
 
     Returns
     -------
@@ -299,7 +320,9 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
     ------
     InputError
         No CAE runs; an unknown or non-test holdout; no training test left; a branch with fewer
-        bias points than the model has parameters.
+        bias points than the model has parameters; a rate law without CAE runs at several speeds.
+    ValueError
+        ``physics`` fitted on other tests or other effects than this fit's.
     """
     if not isinstance(config, MethodConfig):
         raise TypeError(f"expected a MethodConfig, got {type(config).__name__}")
@@ -311,7 +334,12 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         raise InputError("no training test left after the holdout", campaign.root, "holdout")
     if surrogate is None:
         surrogate = CAESurrogate(random_state=config.random_state).fit(campaign)
-    data = training_data(campaign, train, config, surrogate)
+    if physics is None and config.effects:
+        physics = fit_physics(campaign, train, config.effects, surrogate)
+    if physics is not None and (physics.tests != sorted(train) or config.effects not in (AUTO, physics.effects)):
+        raise ValueError(f"physics fitted on {physics.tests} with {physics.effects}, this fit trains on "
+                         f"{sorted(train)} with {config.effects}")
+    data = training_data(campaign, train, config, surrogate, physics)
     seeds = np.random.RandomState(config.random_state).randint(SEED_MAX, size=len(BRANCHES))
     bias = {b: _fit_branch(data, b, config, int(seed), campaign.root) for b, seed in zip(BRANCHES, seeds)}
     return FittedModel(
@@ -319,12 +347,14 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         columns={b: data.branch(b).columns for b in BRANCHES}, training_tests=train,
         groups={b: sorted(set(data.branch(b).groups)) for b in BRANCHES}, missing=dict(data.missing),
         ranges=_ranges(campaign, train, data), companions=_companions(campaign),
-        categories=dict(data.categories), campaign_hash=campaign.content_hash(),
+        categories=dict(data.categories), campaign_hash=campaign.content_hash(), physics=physics,
     )
 
 
-def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CAESurrogate) -> BiasData:
-    """The bias data of ``tests`` as a fit with ``config`` learns them (each test with its companion run).
+def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CAESurrogate,
+                  physics: PhysicsFirst | None = None) -> BiasData:
+    """The bias data of ``tests`` as a fit with ``config`` learns them (each test with its companion run,
+    plus the hybrid's effect laws where ``physics`` is given).
 
     Parameters
     ----------
@@ -335,13 +365,23 @@ def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CA
         Supplies the input mode, extra inputs, thinning, target, weights and velocity coordinate.
     surrogate : CAESurrogate
         The CAE curve of a test without a companion run.
+    physics : PhysicsFirst, optional
+        Effect laws added to every test's CAE curve (:meth:`FittedModel.cae_curve` does the same).
 
     Returns
     -------
     BiasData
     """
+    curves = None
+    if physics is not None and physics.effects:
+        curves = {t: physics.curve(cae_curve(campaign, p, surrogate), p.mass, p.meta.get("powertrain"),
+                                   faster_curve(surrogate, p.v0, p.front_weight, p.rear_weight,
+                                                p.meta.get("powertrain"), p.meta.get("drive")),
+                                   p.front_weight, p.rear_weight)
+                  for t, p in ((t, campaign.pulses[t]) for t in tests)}
     return bias_data(campaign, tests, config.inputs, config.extra_inputs, config.n_grid, surrogate=surrogate,
-                     use_companion=True, target=config.target, weights=config.weights, velocity=config.velocity)
+                     use_companion=True, cae_curves=curves, target=config.target, weights=config.weights,
+                     velocity=config.velocity)
 
 
 def holdout_tests(campaign: Campaign, holdout) -> set[str]:

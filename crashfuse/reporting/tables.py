@@ -86,7 +86,7 @@ def _check_labels(frame: pd.DataFrame, path: Path) -> None:
     checks = {
         "test_id": (lambda v: v.strip() != "", "a non-empty test id"),
         "inputs": (lambda v: v in INPUTS, f"one of {list(INPUTS)}"),
-        "model": (is_model_label, "'CAE' or 'K<n>' (n >= 1)"),
+        "model": (is_model_label, "'CAE' or 'K<n>' (n >= 1), optionally '+<effects>'"),
         "window_ms": (is_window, "'<start>-<end>' in ms with start < end"),
     }
     for col, (ok, expected) in checks.items():

@@ -28,7 +28,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, window_key
+from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, model_order, window_key
 from crashfuse.evaluation.records import CONDITIONS, FOLD_SUFFIX, FoldRecord, read_fold_json
 from crashfuse.reporting.tables import read_iso_table
 
@@ -52,8 +52,8 @@ class Fold:
     cae_iso: dict[str, float]
 
     @property
-    def key(self) -> tuple[str, int, str]:
-        return self.record.inputs, self.record.k, self.record.test_id
+    def key(self) -> tuple[str, str, str]:
+        return self.record.inputs, self.record.model, self.record.test_id
 
     def params(self) -> dict[str, str]:
         """Flat run params: K, test id, inputs, seed, campaign, conditions and settings."""
@@ -171,7 +171,7 @@ def load_folds(results_dir: str | os.PathLike,
     _check_campaign(folds)
     _check_coverage(iso, seen, results_dir)
     _check_same_keys(folds)
-    return iso, sorted(folds, key=lambda f: f.key)
+    return iso, sorted(folds, key=lambda f: (f.record.inputs, model_order(f.record.model), f.record.test_id))
 
 
 def _cae_metrics(scores: pd.DataFrame, record: FoldRecord, path: Path, results_dir: Path) -> dict[str, float]:
@@ -217,7 +217,7 @@ def _check_campaign(folds: list[Fold]) -> None:
 def _check_coverage(iso: pd.DataFrame, seen: dict, results_dir: Path) -> None:
     rows = iso[iso["model"] != BASELINE]
     for inputs, model, test in rows[["inputs", "model", "test_id"]].drop_duplicates().itertuples(index=False):
-        if (inputs, int(model[1:]), test) not in seen:
+        if (inputs, model, test) not in seen:
             raise InputError(f"has scores for test {test}, inputs {inputs}, model {model} but no fold JSON "
                              f"(*{FOLD_SUFFIX}) for it among the folds read", results_dir / ISO_TABLE, "model")
 
@@ -277,7 +277,8 @@ def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = No
     existing = _existing_runs(client, exp_id)
     out = {"tracking_uri": uri, "experiment_id": exp_id, "experiment_name": name, "parents": {}, "folds": {}}
     iso_file = Path(results_dir) / ISO_TABLE
-    for (inputs, k), group in _groups(folds).items():
+    for (inputs, model), group in _groups(folds).items():
+        k = model[1:]  # the K tag: the cluster count, and the hybrid's effects after it
         key = (PARENT, inputs, str(k), "")
         tags = {**common, **dict(zip(KEY_TAGS, key)), "mlflow.runName": f"{inputs} K={k}"}
         parent = _upsert(client, exp_id, existing.get(key, []), tags, _parent_params(group), _mean_metrics(group),
@@ -292,8 +293,8 @@ def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = No
     return out
 
 
-def _groups(folds: list[Fold]) -> dict[tuple[str, int], list[Fold]]:
-    out: dict[tuple[str, int], list[Fold]] = {}
+def _groups(folds: list[Fold]) -> dict[tuple[str, str], list[Fold]]:
+    out: dict[tuple[str, str], list[Fold]] = {}
     for fold in folds:
         out.setdefault(fold.key[:2], []).append(fold)
     return out

@@ -1,0 +1,223 @@
+"""The physics-first hybrid: effect laws fitted to the training tests, the GMM-GP bias on what is left.
+
+With ``effects`` (:class:`crashfuse.method.config.MethodConfig`), a fit first adds catalogue
+effects (:mod:`crashfuse.method.laws`) to the CAE model, their parameters fitted to the fold's
+training tests only (:mod:`crashfuse.method.effect_fit`). The CAE curve of any condition then
+becomes the rollout of CAE + effects (:meth:`PhysicsFirst.curve`): the bias data pair each training
+test with that curve, so the GMM-GP bias learns only what the laws leave, and a prediction rolls out
+the same curve plus the predicted bias. Without effects the fit is the GMM-GPR model unchanged.
+
+``effects="auto"`` chooses the effects by forward selection on the training tests alone: an effect
+joins when it cuts their inner leave-one-test-out squared error (each training test predicted by
+the laws fitted on the others) by at least :data:`MIN_GAIN`. Rate laws (``strain_rate``,
+``damping``) need CAE runs at :data:`~crashfuse.method.effect_fit.MIN_CAE_SPEEDS` impact speeds,
+which separate the CAE model's own rate sensitivity from the missing one: naming one without them
+is an error, and ``auto`` leaves them out and says so (:attr:`PhysicsFirst.notes`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from crashfuse.catalogue import EFFECTS
+from crashfuse.errors import InputError
+from crashfuse.io.campaign import Campaign
+from crashfuse.method.effect_fit import DT, MIN_CAE_SPEEDS, FoldFits, fit_folds, predict, test_case, warm_start
+from crashfuse.method.laws import N_S, curve_plant, simulate
+from crashfuse.method.surrogate import CAECurve, CAESurrogate
+from crashfuse.signals.pulse import Pulse
+
+AUTO = "auto"
+RATE_EFFECTS = ("strain_rate", "damping")  # laws that act through the crush speed
+MIN_GAIN = 0.10  # fraction of the inner held-out squared error an effect must remove to join `auto`
+DURATION = 0.3  # s, rollout of a CAE + effects curve: past separation for any frontal pulse
+
+
+@dataclasses.dataclass
+class PhysicsFirst:
+    """Effect laws fitted to training tests, added to the CAE model.
+
+    Attributes
+    ----------
+    effects : tuple of str
+        Catalogue effects, possibly empty (then :meth:`curve` returns the CAE curve unchanged).
+    tests : list of str
+        The training tests the laws were fitted (and chosen) on, sorted.
+    theta : dict of str to float
+        Every law parameter (``effect.param``, SI), fitted on the training tests.
+    labels : tuple of str
+        Powertrain labels of the training tests (``all`` where unlabelled).
+    s_hi : float
+        Crush (m) up to which the laws tabulate the CAE curve.
+    rate : ndarray, shape (2, N_S)
+        The CAE force's sensitivity to crush speed on ``linspace(0, s_hi, N_S)``
+        (:func:`crashfuse.method.laws.crush_force_rate`, N s/m and N s^2/m^2); zeros when
+        not ``rate_aware``.
+    rate_aware : bool
+        Whether the CAE runs span enough impact speeds to estimate that sensitivity.
+    training_mse : float
+        Mean squared residual of CAE + effects over the training tests, (m/s^2)^2.
+    inner_mse : dict of str to float
+        ``auto`` only: the inner leave-one-test-out squared error of every effect set tried
+        (``+``-joined names, ``none`` for the CAE alone), (m/s^2)^2.
+    notes : list of str
+        Fallbacks taken (rate laws left out of ``auto``).
+    """
+
+    effects: tuple
+    tests: list
+    theta: dict
+    labels: tuple
+    s_hi: float
+    rate: np.ndarray
+    rate_aware: bool
+    training_mse: float
+    inner_mse: dict
+    notes: list
+
+    def curve(self, base: CAECurve, mass: float, label: str | None, faster: CAECurve | None,
+              front_weight: float, rear_weight: float) -> CAECurve:
+        """The CAE + effects curve of one condition.
+
+        Parameters
+        ----------
+        base : CAECurve
+            The CAE model's curve there (companion run or surrogate).
+        mass : float
+            Nominal vehicle mass in kg.
+        label : str or None
+            Powertrain label (None: ``all``).
+        faster : CAECurve or None
+            The surrogate's curve at :data:`~crashfuse.method.effect_fit.FASTER` x the impact
+            speed, the structure met beyond ``base``'s crush (rate-aware fits only).
+        front_weight, rear_weight : float
+            Axle masses in kg (recorded on the rolled-out pulse).
+
+        Raises
+        ------
+        InputError
+            ``powertrain`` among the effects and a label no training test had.
+        """
+        if not self.effects:
+            return base
+        label = "all" if label is None else str(label)
+        if "powertrain" in self.effects and label not in self.labels:
+            raise InputError(f"the fitted powertrain law knows the labels {list(self.labels)}, got {label!r}",
+                             field="powertrain")
+        grid = np.linspace(0.0, self.s_hi, N_S)
+        rate = None if not self.rate_aware else (lambda s: np.array([np.interp(s, grid, b) for b in self.rate]))
+        plant = curve_plant([base], [mass], [label], self.s_hi, [faster] if self.rate_aware else None, rate)
+        theta = {name: np.array([value]) for name, value in self.theta.items()}
+        traj = simulate(plant, self.effects, theta, DT, int(round(DURATION / DT)))
+        pulse = Pulse(traj.time, traj.decel[0], base.v0, front_weight, rear_weight,
+                      run_id=f"{base.run_id}+{'+'.join(self.effects)}", source="cae")
+        return CAECurve.from_pulse(pulse, unloading_from=base)
+
+
+def check_effects(value, field: str = "effects"):
+    """``auto``, or a tuple of distinct catalogue effects (``none`` and empty: no effect).
+
+    Raises
+    ------
+    InputError
+        An unknown effect, a repeat, or another type, naming ``field``.
+    """
+    if isinstance(value, str):
+        value = () if value == "none" else value if value == AUTO else (value,)
+    if value == AUTO:
+        return AUTO
+    if not isinstance(value, (tuple, list)) or not all(isinstance(e, str) for e in value):
+        raise InputError(f"expected {AUTO!r}, 'none' or a sequence of effects among {list(EFFECTS)}, got {value!r}",
+                         field=field)
+    unknown = [e for e in value if e not in EFFECTS]
+    if unknown or len(set(value)) != len(value):
+        what = f"unknown effect(s) {unknown}" if unknown else "an effect named twice"
+        raise InputError(f"{what}: expected distinct effects among {list(EFFECTS)}, {AUTO!r} or 'none', "
+                         f"got {list(value)}", field=field)
+    return tuple(value)
+
+
+def fit_physics(campaign: Campaign, train, effects, surrogate: CAESurrogate, min_gain: float = MIN_GAIN,
+                candidates=EFFECTS) -> PhysicsFirst:
+    """Fit (and with ``auto`` choose) effect laws on the tests ``train`` only.
+
+    Parameters
+    ----------
+    campaign : Campaign
+    train : sequence of str
+        The training tests; no other test enters any fit or choice.
+    effects : "auto" or tuple of str
+        As :func:`check_effects` returns.
+    surrogate : CAESurrogate
+        Fitted on the campaign's CAE runs.
+    min_gain : float
+        ``auto``: the fraction of inner held-out squared error an effect must remove.
+    candidates : sequence of str
+        ``auto``: the effects it may choose among.
+
+    Returns
+    -------
+    PhysicsFirst
+
+    Raises
+    ------
+    InputError
+        A rate law named while the CAE runs span fewer than ``MIN_CAE_SPEEDS`` impact speeds.
+    """
+    case = test_case(campaign.subset([*train, *campaign.cae]), surrogate)
+    rows = list(range(len(case.test_ids)))
+    notes, inner = [], {}
+    if effects == AUTO:
+        if not case.rate_aware:
+            candidates = tuple(e for e in candidates if e not in RATE_EFFECTS)
+            notes.append(f"rate laws {list(RATE_EFFECTS)} left out: the CAE runs span fewer than {MIN_CAE_SPEEDS} "
+                         f"impact speeds")
+        effects, inner, fits = choose_effects(case, rows, candidates, min_gain)
+    elif not case.rate_aware and set(effects) & set(RATE_EFFECTS):
+        raise InputError(f"{sorted(set(effects) & set(RATE_EFFECTS))} need CAE runs at {MIN_CAE_SPEEDS} or more "
+                         f"impact speeds (the CAE model's own rate sensitivity), the campaign has fewer",
+                         campaign.root, "effects")
+    else:
+        fits = fit_folds(case, effects, [rows])
+    plant = case.plant  # its rate sensitivity as tabulated for the fit (force per crush speed = dadv x mass)
+    rate = np.array([plant.dadv[0], plant.dadv2[0]]) * plant.mass[0]
+    return PhysicsFirst(tuple(effects), sorted(train), {p.name: float(v) for p, v in zip(fits.params, fits.theta[-1])},
+                        plant.labels, plant.s_hi, rate, case.rate_aware, float(fits.cost[-1]), inner, notes)
+
+
+def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -> tuple[tuple, dict, FoldFits]:
+    """Forward selection of effects by inner leave-one-test-out squared error over ``rows``.
+
+    Each round fits every remaining candidate with the chosen ones (warm-started from their fits)
+    on every inner training set and on all of ``rows`` at once.
+
+    Returns
+    -------
+    effects : tuple of str
+        The chosen effects, in the order they joined (empty: the CAE alone predicts best).
+    tried : dict of str to float
+        Inner held-out mean squared error, (m/s^2)^2, of every effect set tried (``+``-joined,
+        ``none`` for the CAE alone).
+    fits : FoldFits
+        The chosen set's fits: the inner sets, then all of ``rows`` (the last row).
+    """
+    sets = [[r for r in rows if r != j] for j in rows] + [list(rows)]
+    current = fit_folds(case, (), sets)
+    chosen, tried = (), {"none": _inner_error(case, current, rows)}
+    while len(chosen) < len(candidates):
+        trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, e))
+                  for e in candidates if e not in chosen}
+        errors = {e: _inner_error(case, fits, rows) for e, fits in trials.items()}
+        tried.update({"+".join(chosen + (e,)): err for e, err in errors.items()})
+        best = min(errors, key=errors.get)
+        if errors[best] > (1.0 - min_gain) * tried["+".join(chosen) or "none"]:
+            break
+        chosen, current = chosen + (best,), trials[best]
+    return chosen, tried, current
+
+
+def _inner_error(case, fits: FoldFits, rows) -> float:
+    """Mean over ``rows`` of each test's squared error, predicted by the fit of the inner set without it."""
+    return float(np.mean(predict(case, fits, range(len(rows)), rows)[1]))

@@ -1,0 +1,163 @@
+"""The physics-first hybrid (crashfuse.method.hybrid): effect laws fitted on training tests only,
+added to the CAE model; without effects it is the GMM-GPR model."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from crashfuse.cli import main
+from crashfuse.errors import InputError
+from crashfuse.io.campaign import Campaign
+from crashfuse.method import effect_fit
+from crashfuse.method.config import MethodConfig
+from crashfuse.method.hybrid import fit_physics
+from crashfuse.method.model import fit_model, load_model
+from crashfuse.method.projection import cae_curve
+from crashfuse.method.rollout import predict
+from crashfuse.method.surrogate import CAESurrogate
+from crashfuse.world.generate import build
+from crashfuse.world.presets import resolve
+
+N_CAE = 12
+CANDIDATES = ("mass", "damping")  # two laws keep the forward selection fast
+
+
+CONFIG = MethodConfig(k=1, inputs="paper", n_grid=40)  # cheap bias fits: these tests are about the laws
+
+
+def _with(effects) -> MethodConfig:
+    return dataclasses.replace(CONFIG, effects=effects)
+
+
+@pytest.fixture(scope="module")
+def worlds():
+    """The damping world and the control (same seed: same conditions and CAE runs), with a surrogate."""
+    damped, _ = build(resolve("withheld", withhold="damping"), seed=2, n_cae=N_CAE)
+    control, _ = build(resolve("withheld", withhold="none"), seed=2, n_cae=N_CAE)
+    return damped, control, CAESurrogate(random_state=0).fit(control)
+
+
+def _held_out_only(damped: Campaign, control: Campaign, test_id: str) -> Campaign:
+    """The control with one test replaced by the damping world's: the effect exists in that test only."""
+    pulses = {**control.pulses, test_id: damped.pulses[test_id]}
+    return Campaign(control.conditions, pulses, control.root)
+
+
+def _predict(model, campaign, test_id):
+    t = campaign.pulses[test_id]
+    return predict(model, t.v0, t.front_weight, t.rear_weight, t.meta.get("powertrain"), t.meta.get("drive"),
+                   n_samples=20, random_state=0, duration=0.08)
+
+
+@pytest.fixture(scope="module")
+def held(worlds):
+    return worlds[0].tests[-1]  # the fastest test: the damping force is largest there
+
+
+@pytest.fixture(scope="module")
+def auto_damped(worlds, held):
+    damped, _, surrogate = worlds
+    return fit_physics(damped, [t for t in damped.tests if t != held], "auto", surrogate, candidates=CANDIDATES)
+
+
+def test_auto_finds_a_withheld_effect_on_the_training_tests(worlds, held, auto_damped):
+    assert auto_damped.effects[0] == "damping"
+    assert auto_damped.tests == sorted(t for t in worlds[0].tests if t != held)
+    assert auto_damped.inner_mse["damping"] < 0.9 * auto_damped.inner_mse["none"]
+
+
+def test_an_effect_only_the_held_out_test_carries_is_not_chosen(worlds, held, auto_damped):
+    damped, control, surrogate = worlds
+    planted = _held_out_only(damped, control, held)
+    train = [t for t in planted.tests if t != held]  # what fit_model passes for this fold
+    assert fit_physics(planted, train, "auto", surrogate, candidates=CANDIDATES).effects == ()
+    assert "damping" in auto_damped.effects  # the same fold with the effect in its training tests: can fail
+    model = fit_model(planted, _with(("damping",)), holdout=held, surrogate=surrogate)
+    assert held not in model.physics.tests and len(model.physics.tests) == len(train)
+
+
+def test_the_hybrid_without_effects_is_the_gmm_gpr_model(worlds):
+    _, control, surrogate = worlds
+    held = control.tests[3]
+    plain = fit_model(control, CONFIG, holdout=held, surrogate=surrogate)
+    none = fit_model(control, _with("none"), holdout=held, surrogate=surrogate)
+    a = _predict(plain, control, held)
+    np.testing.assert_array_equal(_predict(none, control, held).decel, a.decel)
+    # a zero effect's laws replay the CAE curve the bias is learnt against (loading branch, 1 % of peak)
+    physics = fit_physics(control, [t for t in control.tests if t != held], ("mass",), surrogate)
+    zero = dataclasses.replace(physics, theta={"mass.extra": 0.0})
+    for t in control.tests:
+        p = control.pulses[t]
+        base = cae_curve(control, p, surrogate)
+        replay = zero.curve(base, p.mass, p.meta.get("powertrain"), None, p.front_weight, p.rear_weight)
+        s = np.linspace(0.0, 0.98 * base.s_max, 200)  # the stop itself falls between rollout steps
+        assert replay.s_max == pytest.approx(base.s_max, rel=1e-3)
+        np.testing.assert_allclose(replay.loading(s), base.loading(s), atol=0.01 * base.a_loading.max())
+
+
+def test_a_fitted_effect_moves_the_cae_curve_and_survives_the_model_file(worlds, tmp_path):
+    damped, _, surrogate = worlds
+    held = damped.tests[-1]
+    model = fit_model(damped, _with(("damping",)), holdout=held, surrogate=surrogate)
+    assert model.physics.theta["damping.c"] > 0
+    t = damped.pulses[held]
+    labels = t.meta.get("powertrain"), t.meta.get("drive")
+    cond = model.condition(t.v0, t.front_weight, t.rear_weight, *labels)
+    base = model.surrogate.curve(t.v0, t.front_weight, t.rear_weight, *labels)
+    # damping adds force: the CAE + effects curve stops in less crush than the CAE model's
+    assert model.cae_curve(cond).s_max < base.s_max
+    model.save(tmp_path / "hybrid.cfmodel")
+    loaded = load_model(tmp_path / "hybrid.cfmodel")
+    assert loaded.physics.effects == ("damping",)
+    np.testing.assert_allclose(_predict(loaded, damped, held).decel, _predict(model, damped, held).decel,
+                               rtol=1e-9, atol=1e-6)
+
+
+def test_physics_fitted_on_other_tests_is_refused(worlds):
+    damped, _, surrogate = worlds
+    physics = fit_physics(damped, damped.tests[1:], ("mass",), surrogate)
+    with pytest.raises(ValueError, match="physics fitted on"):
+        fit_model(damped, _with(("mass",)), holdout=damped.tests[2],
+                  surrogate=surrogate, physics=physics)
+
+
+@pytest.mark.parametrize("effects", [("friction",), ("mass", "mass"), 3, "everything"])
+def test_unknown_effects_are_refused_naming_the_setting(effects):
+    with pytest.raises(InputError) as err:
+        MethodConfig(effects=effects)
+    assert err.value.field == "effects"
+
+
+def test_the_command_line_names_the_flag(worlds, capsys):
+    assert main(["fit", "campaign-not-needed", "--k", "1", "--effects", "friction", "--out", "m.cfmodel"]) != 0
+    assert "--effects" in capsys.readouterr().err
+
+
+def test_rate_laws_need_cae_runs_at_several_speeds(worlds, monkeypatch):
+    damped, _, surrogate = worlds
+    monkeypatch.setattr(effect_fit, "MIN_CAE_SPEEDS", 10 ** 6)  # as if every CAE run had one speed
+    with pytest.raises(InputError, match="impact speeds") as err:
+        fit_physics(damped, damped.tests[1:], ("damping",), surrogate)
+    assert err.value.field == "effects"
+    physics = fit_physics(damped, damped.tests[1:], "auto", surrogate, candidates=CANDIDATES)
+    assert "damping" not in physics.effects and not physics.rate_aware
+    assert any("left out" in note for note in physics.notes)
+
+
+def test_an_evaluation_labels_the_hybrid_and_records_its_effects(worlds, tmp_path):
+    from crashfuse.evaluation.iso_table import is_model_label, model_order
+    from crashfuse.evaluation.loto import evaluate
+    from crashfuse.evaluation.records import read_fold_json
+
+    damped, _, surrogate = worlds
+    held = damped.tests[-1]
+    result = evaluate(damped, ks=[1], inputs=["paper"], out=tmp_path, n_samples=10, n_jobs=1, surrogate=surrogate,
+                      holdout=held, progress=None, n_grid=40, effects=("damping",))
+    assert set(result.iso_table["model"]) == {"CAE", "K1+damping"}
+    record = read_fold_json(tmp_path / "paper" / "K1+damping" / held / f"{held}.fold.json")
+    assert record.model == "K1+damping" and record.settings["effects_fitted"] == "damping"
+    assert is_model_label("K2+strain_rate+powertrain") and not is_model_label("K1+")
+    assert sorted(["K2", "K1+auto", "CAE", "K1"], key=model_order) == ["CAE", "K1", "K1+auto", "K2"]
