@@ -57,10 +57,18 @@ def choose_k(campaign: Campaign, config: MethodConfig, ks=(1, 2, 3), holdout=Non
     scores = {}
     for k in ks:
         refit = dataclasses.replace(config, k=k, estimate_scatter=False)
-        logs = [_log_density(fit_model(campaign, refit, holdout=[t, *outer], surrogate=surrogate), data, t)
-                for t in train]
+        logs = [_held_out_density(campaign, refit, [t, *outer], surrogate, data) for t in train]
         scores[int(k)] = float(np.mean(np.concatenate([x for per_test in logs for x in per_test])))
     return max(scores, key=lambda k: (scores[k], -k)), scores
+
+
+def _held_out_density(campaign, config, holdout, surrogate, data) -> list:
+    """:func:`_log_density` of ``holdout[0]`` under the model refitted without ``holdout``; with the hybrid's
+    effects that test's bias is taken against the refit's own CAE + effects curve."""
+    model = fit_model(campaign, config, holdout=holdout, surrogate=surrogate)
+    if model.physics is not None:
+        data = training_data(campaign, holdout[:1], config, surrogate, model.physics)
+    return _log_density(model, data, holdout[0])
 
 
 def _log_density(model, data, test_id: str) -> list:
