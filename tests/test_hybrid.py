@@ -161,3 +161,22 @@ def test_an_evaluation_labels_the_hybrid_and_records_its_effects(worlds, tmp_pat
     assert record.model == "K1+damping" and record.settings["effects_fitted"] == "damping"
     assert is_model_label("K2+strain_rate+powertrain") and not is_model_label("K1+")
     assert sorted(["K2", "K1+auto", "CAE", "K1"], key=model_order) == ["CAE", "K1", "K1+auto", "K2"]
+
+
+def test_a_powertrain_arrest_no_training_test_reached_is_switched_off(worlds):
+    from crashfuse.method.effect_fit import powertrain_label
+    from crashfuse.method.hybrid import UNREACHED_GAP, _switch_off_unreached
+    from crashfuse.signals.domain import displacement_branches
+
+    damped = worlds[0]
+    train = damped.tests[:-1]
+    reach = {}
+    for t in train:
+        label = powertrain_label(damped, t)
+        reach[label] = max(reach.get(label, 0.0), displacement_branches(damped.pulses[t]).s_max)
+    (far, far_reach), (near, near_reach) = sorted(reach.items())[:2]
+    theta = {f"powertrain.gap[{far}]": far_reach + 0.01, f"powertrain.gap[{near}]": near_reach - 0.05,
+             f"powertrain.mass[{far}]": 200.0, f"powertrain.mass[{near}]": 200.0, "powertrain.f_mount": 5e4}
+    notes = _switch_off_unreached(damped, train, theta)
+    assert theta[f"powertrain.gap[{far}]"] == UNREACHED_GAP and len(notes) == 1 and far in notes[0]
+    assert theta[f"powertrain.gap[{near}]"] == pytest.approx(near_reach - 0.05)

@@ -101,7 +101,7 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
     target = np.array([np.interp(time, p.time, p.decel) for p in pulses])
     mask = np.array([time <= p.time[-1] + 1e-12 for p in pulses])
     s_hi = S_HI_FACTOR * max(max(c.s[-1], c.s_max) for c in curves)
-    labels = [_label(campaign, t) for t in campaign.tests]
+    labels = [powertrain_label(campaign, t) for t in campaign.tests]
     faster = ([faster_curve(surrogate, p.v0, p.front_weight, p.rear_weight, p.meta.get("powertrain"), p.meta.get("drive"))
                for p in pulses] if rate_aware else None)
     force_rate = functools.partial(crush_force_rate, [campaign.pulses[r] for r in campaign.cae]) if rate_aware else None
@@ -119,7 +119,8 @@ def faster_curve(surrogate: CAESurrogate, v0: float, front_weight: float, rear_w
         return None
 
 
-def _label(campaign: Campaign, test_id: str) -> str:
+def powertrain_label(campaign: Campaign, test_id: str) -> str:
+    """A run's powertrain label as the powertrain law keys it (``all`` where the campaign has none)."""
     row = campaign.conditions.loc[campaign.conditions["run_id"] == test_id].iloc[0]
     value = row.get("powertrain")
     return "all" if value is None or (isinstance(value, float) and np.isnan(value)) else str(value)

@@ -13,6 +13,10 @@ the laws fitted on the others) by at least :data:`MIN_GAIN`. Rate laws (``strain
 ``damping``) need CAE runs at :data:`~crashfuse.method.effect_fit.MIN_CAE_SPEEDS` impact speeds,
 which separate the CAE model's own rate sensitivity from the missing one: naming one without them
 is an error, and ``auto`` leaves them out and says so (:attr:`PhysicsFirst.notes`).
+
+A law acts only where the training tests saw it act: the powertrain arrest of a label whose fitted
+gap no training test of that label crushed to (or of a label no training test had) is switched off,
+so a faster condition of that label does not meet an engine fitted to nothing.
 """
 
 from __future__ import annotations
@@ -24,13 +28,16 @@ import numpy as np
 from crashfuse.catalogue import EFFECTS
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
-from crashfuse.method.effect_fit import DT, MIN_CAE_SPEEDS, FoldFits, fit_folds, predict, test_case, warm_start
+from crashfuse.method.effect_fit import (DT, MIN_CAE_SPEEDS, FoldFits, fit_folds, powertrain_label, predict, test_case,
+                                         warm_start)
 from crashfuse.method.laws import N_S, curve_plant, simulate
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
+from crashfuse.signals.domain import displacement_branches
 from crashfuse.signals.pulse import Pulse
 
 AUTO = "auto"
 RATE_EFFECTS = ("strain_rate", "damping")  # laws that act through the crush speed
+UNREACHED_GAP = 1.0e3  # m: a powertrain gap no crush reaches - the law is off for that label
 MIN_GAIN = 0.10  # fraction of the inner held-out squared error an effect must remove to join `auto`
 DURATION = 0.3  # s, rollout of a CAE + effects curve: past separation for any frontal pulse
 
@@ -95,21 +102,18 @@ class PhysicsFirst:
         front_weight, rear_weight : float
             Axle masses in kg (recorded on the rolled-out pulse).
 
-        Raises
-        ------
-        InputError
-            ``powertrain`` among the effects and a label no training test had.
+        A label no training test had meets no powertrain arrest (nothing informed one).
         """
         if not self.effects:
             return base
         label = "all" if label is None else str(label)
+        theta = dict(self.theta)
         if "powertrain" in self.effects and label not in self.labels:
-            raise InputError(f"the fitted powertrain law knows the labels {list(self.labels)}, got {label!r}",
-                             field="powertrain")
+            theta.update({f"powertrain.mass[{label}]": 0.0, f"powertrain.gap[{label}]": UNREACHED_GAP})
         grid = np.linspace(0.0, self.s_hi, N_S)
         rate = None if not self.rate_aware else (lambda s: np.array([np.interp(s, grid, b) for b in self.rate]))
         plant = curve_plant([base], [mass], [label], self.s_hi, [faster] if self.rate_aware else None, rate)
-        theta = {name: np.array([value]) for name, value in self.theta.items()}
+        theta = {name: np.array([value]) for name, value in theta.items()}
         traj = simulate(plant, self.effects, theta, DT, int(round(DURATION / DT)))
         pulse = Pulse(traj.time, traj.decel[0], base.v0, front_weight, rear_weight,
                       run_id=f"{base.run_id}+{'+'.join(self.effects)}", source="cae")
@@ -181,10 +185,27 @@ def fit_physics(campaign: Campaign, train, effects, surrogate: CAESurrogate, min
                          campaign.root, "effects")
     else:
         fits = fit_folds(case, effects, [rows])
+    theta = {p.name: float(v) for p, v in zip(fits.params, fits.theta[-1])}
+    notes += _switch_off_unreached(campaign, train, theta)
     plant = case.plant  # its rate sensitivity as tabulated for the fit (force per crush speed = dadv x mass)
     rate = np.array([plant.dadv[0], plant.dadv2[0]]) * plant.mass[0]
-    return PhysicsFirst(tuple(effects), sorted(train), {p.name: float(v) for p, v in zip(fits.params, fits.theta[-1])},
-                        plant.labels, plant.s_hi, rate, case.rate_aware, float(fits.cost[-1]), inner, notes)
+    return PhysicsFirst(tuple(effects), sorted(train), theta, plant.labels, plant.s_hi, rate, case.rate_aware, float(fits.cost[-1]), inner, notes)
+
+
+def _switch_off_unreached(campaign: Campaign, train, theta: dict) -> list:
+    """Switch off the powertrain law of every label whose fitted gap no training test of that label
+    crushed to: its mass and gap were never observed acting, so a faster condition of that label must
+    not meet an arrest fitted to nothing (the bias model then corrects it as without the law). The
+    training tests' rollouts never reached the gap, so their fit is unchanged. Returns notes."""
+    notes = []
+    for name in [n for n in theta if n.startswith("powertrain.gap[")]:
+        label = name[len("powertrain.gap["):-1]
+        crush = [displacement_branches(campaign.pulses[t]).s_max for t in train if powertrain_label(campaign, t) == label]
+        if crush and theta[name] >= max(crush):
+            notes.append(f"powertrain law off for {label}: no training test of it crushed to its fitted gap "
+                         f"{theta[name]:.3f} m (largest crush {max(crush):.3f} m)")
+            theta[name] = UNREACHED_GAP
+    return notes
 
 
 def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -> tuple[tuple, dict, FoldFits]:
