@@ -219,8 +219,8 @@ def _diagnose(args) -> int:
     surrogate = load_surrogate(args.surrogate) if args.surrogate else None
     if surrogate is not None:
         surrogate.check_campaign(campaign, args.surrogate)
-    diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, min_wins=args.min_wins, k=args.k,
-                    inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
+    diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, alpha=args.alpha, move=args.move,
+                    k=args.k, inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
                     in_sample=args.in_sample, residual_model=not args.no_residual)
     out = write_diagnosis(diag, args.out, campaign)
     print(f"verdict: {', '.join(diag.verdict) or 'none'} -> {out / 'diagnosis.md'}")
@@ -508,8 +508,11 @@ def _add_diagnose(sub) -> None:
                    help=f"candidate effects (default all: {' '.join(EFFECTS)})")
     s.add_argument("--threshold", type=float, default=0.10,
                    help="relative drop of the held-out squared error an effect must bring (default 0.10)")
-    s.add_argument("--min-wins", type=float, default=2 / 3,
-                   help="share of folds whose held-out error must drop (default 2/3)")
+    s.add_argument("--alpha", type=float, default=0.10,
+                   help="level of the one-sided sign test over the folds an effect acts on (default 0.10)")
+    s.add_argument("--move", type=float, default=0.05,
+                   help="an effect acts on a fold when it moves the held-out prediction by more than this "
+                        "share of the test's rms deceleration (default 0.05)")
     s.add_argument("--k", type=_positive, default=1,
                    help="mixture size of the bias model of the gap map and the GMM-GPR rows (default 1)")
     s.add_argument("--samples", type=_positive, default=200, help="Monte Carlo samples per GMM-GPR fold (default 200)")
@@ -578,8 +581,8 @@ _FLAGS = {
     "fit": _METHOD_FLAGS,
     "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out"},
     "predict": {"n_samples": "--samples", "random_state": "--seed", "band": "--band"},
-    "diagnose": {"effects": "--effects", "threshold": "--threshold", "min_wins": "--min-wins", "k": "--k",
-                 "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed"},
+    "diagnose": {"effects": "--effects", "threshold": "--threshold", "alpha": "--alpha", "move": "--move",
+                 "k": "--k", "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed"},
     "report": {"score": "--score"},
     "plot summary": {"score": "--score", "window": "--window"},
     "world generate": {"preset": "--preset", "withhold": "--withhold", "strength": "--strength",
