@@ -12,7 +12,7 @@ from crashfuse.catalogue import EFFECTS
 from crashfuse.method import effect_fit as ef
 from crashfuse.cli import main
 from crashfuse.diagnosis.diagnose import Candidate, diagnose, write_diagnosis
-from crashfuse.diagnosis.evidence import ALPHA, MIN_AFFECTED, MOVE, judge, sign_test
+from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, sign_test
 from crashfuse.signals.dynamics import State
 from crashfuse.method.laws import decel_fn, headline, parameters
 from crashfuse.errors import InputError
@@ -301,8 +301,34 @@ def test_a_candidate_losing_on_the_folds_it_acts_on_is_refused():
 
 def test_too_few_affected_folds_or_too_small_a_drop_are_refused():
     tests = np.full(N_FOLDS, TEST_RMS)
-    ref, cand, change = _subset_effect(n_acting=MIN_AFFECTED - 1)
-    assert not judge(ref, cand, change, tests, threshold=0.1).accepted  # 3 wins of 3: p = 1/8
+    ref, cand, change = _subset_effect(n_acting=MIN_MATERIAL - 1)
+    assert not judge(ref, cand, change, tests, threshold=0.1).accepted  # 2 wins of 2
     ref, cand, change = _subset_effect(n_acting=N_FOLDS, gain=0.05)  # consistent but practically small
     ev = judge(ref, cand, change, tests, threshold=0.1)
     assert ev.p_value < ALPHA and not ev.accepted and "ratio" in ev.reason
+
+
+def test_three_folds_are_evidence_only_when_each_wins_beyond_the_scatter():
+    """Three of three affected folds better (sign test p = 1/8): accepted when every one is predicted
+    better by more than the held-out error a typical test keeps (0.5 g here), refused when by less."""
+    tests = np.full(N_FOLDS, TEST_RMS)
+    ref, cand, change = _subset_effect(n_acting=3, gain=0.8)  # 3 g -> 1.3 g rms on the three
+    ev = judge(ref, cand, change, tests, threshold=0.1)
+    assert ev.p_value == pytest.approx(1 / 8) and ev.p_value > ALPHA
+    assert ev.scatter == pytest.approx(5.0) and ev.material.sum() == 3 and ev.accepted
+    ref, cand, change = _subset_effect(n_acting=3, gain=0.3)  # 3 g -> 2.5 g: less than the 0.5 g scatter
+    ev = judge(ref, cand, change, tests, threshold=0.1)
+    assert ev.ratio < 0.9 and ev.material.sum() == 0 and not ev.accepted
+
+
+def test_the_only_affected_test_of_its_label_is_not_counted():
+    """A per-label law fits that label from no test it acts on when its only such test is held out:
+    that fold's loss is not evidence against the effect."""
+    tests = np.full(N_FOLDS, TEST_RMS)
+    ref, cand, change = _subset_effect(n_acting=4, gain=0.8)
+    cand[8] = 2.0 * ref[8]  # the held-out prediction of the label's only affected test is poor
+    labels = np.array([0, 1] * 5 + [1])
+    labels[8] = 0  # T09 the only label-0 test among the affected T08-T11
+    assert not judge(ref, cand, change, tests, threshold=0.1).accepted  # 3 wins, 1 loss: p = 5/16
+    ev = judge(ref, cand, change, tests, threshold=0.1, groups=labels)
+    assert list(np.flatnonzero(ev.sole)) == [8] and (ev.wins, ev.losses) == (3, 0) and ev.accepted

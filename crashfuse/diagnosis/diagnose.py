@@ -186,11 +186,12 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, say):
         for e in remaining:
             fits = fit_folds(case, (*chosen, e), sets, start=_start(case, current, e))
             preds[e], mse = _heldout(case, fits)
-            ev = judge(reference, mse, _rms(case, preds[e] - ref_pred), test_rms, **rule)
+            change = _rms(case, preds[e] - ref_pred)
+            ev = judge(reference, mse, change, test_rms, groups=_groups(case, fits, e), **rule)
             acts_on = [t for t, a in zip(case.test_ids, ev.affected) if a]
             candidates[e] = c = Candidate(e, rnd, fits, mse, reference, ev, acts_on)
             say(f"  round {rnd} +{e}: held-out rms {_rms_g(mse):.3f} g (x{c.ratio:.3f} MSE), acts on "
-                f"{' '.join(acts_on) or 'no test'}: better on {ev.wins}, worse on {ev.losses} "
+                f"{' '.join(acts_on) or 'no test'}{_sole_note(case, ev)}: better on {ev.wins}, worse on {ev.losses} "
                 f"(sign test p {ev.p_value:.3g}, x{ev.affected_ratio:.3f} MSE there)")
         eligible = [e for e in remaining if not candidates[e].at_upper_bound]
         if not eligible:
@@ -205,6 +206,17 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, say):
         current, reference, ref_pred = c.fits, c.heldout_mse, preds[best]
     say(f"diagnose: verdict {chosen or 'none'}")
     return chosen, candidates, current
+
+
+def _sole_note(case: TestCase, ev: Evidence) -> str:
+    sole = [t for t, x in zip(case.test_ids, ev.sole) if x]
+    return f" ({' '.join(sole)} the only one of its label: not counted)" if sole else ""
+
+
+def _groups(case: TestCase, fits: FoldFits, effect: str):
+    """The powertrain label of each test when ``effect``'s law has parameters per label, else None."""
+    per_label = any("[" in p.name for p in fits.params if p.name.startswith(effect + "."))
+    return case.plant.group if per_label else None
 
 
 def _rule(threshold: float, alpha: float, move: float, holdout: bool) -> dict:
@@ -331,6 +343,7 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
         "effect": c.effect, "chosen": c.chosen, "params": params,
         "headline": head, "headline_se": {k: _num(x) for k, x in zip(head, head_se)},
         "evidence": {"round": c.round, "heldout_mse_ratio": c.ratio, "acts_on": list(c.acts_on),
+                     "not_counted": [t for t, x in zip(case.test_ids, c.evidence.sole) if x],
                      "folds_better": c.wins, "folds_worse": c.evidence.losses, "sign_test_p": c.evidence.p_value,
                      "affected_mse_ratio": c.evidence.affected_ratio, "accepted": c.evidence.accepted,
                      "refused_because": c.evidence.reason, "at_upper_bound": c.at_upper_bound,
