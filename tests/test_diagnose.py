@@ -164,7 +164,10 @@ def test_diagnosis_files(damping_world, tmp_path):
     assert {"verdict", "effects", "regions", "shrink"} <= set(js)
     assert js["effects"][0]["params"]["damping.c"]["unit"] == "N s/m"
     assert js["effects"][0]["params"]["damping.c"]["identified"]
-    assert "Verdict" in (out / "diagnosis.md").read_text()
+    evidence = js["effects"][0]["evidence"]
+    assert evidence["accepted"] and len(evidence["acts_on"]) >= 4 and set(evidence["acts_on"]) <= set(campaign.tests)
+    assert evidence["folds_better"] + evidence["folds_worse"] == len(evidence["acts_on"]) - len(evidence["not_counted"])
+    assert "Verdict" in (out / "diagnosis.md").read_text() and "acts on" in (out / "diagnosis.md").read_text()
     assert {"intervals", "windows", "regimes"} <= set(js["regions"])
     for name in ("effects.png", "bias_map.png", "gap_pulses.png"):
         assert (out / "figures" / name).stat().st_size > 0

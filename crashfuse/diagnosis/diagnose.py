@@ -345,6 +345,7 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
         "evidence": {"round": c.round, "heldout_mse_ratio": c.ratio, "acts_on": list(c.acts_on),
                      "not_counted": [t for t, x in zip(case.test_ids, c.evidence.sole) if x],
                      "folds_better": c.wins, "folds_worse": c.evidence.losses, "sign_test_p": c.evidence.p_value,
+                     "scatter_g": c.evidence.scatter / G0, "folds_beyond_scatter": int(c.evidence.material.sum()),
                      "affected_mse_ratio": c.evidence.affected_ratio, "accepted": c.evidence.accepted,
                      "refused_because": c.evidence.reason, "at_upper_bound": c.at_upper_bound,
                      "n_folds": int(c.heldout_mse.size), "heldout_rms_g": _rms_g(c.heldout_mse),
