@@ -118,8 +118,8 @@ def _world_validate(args) -> int:
     from crashfuse.world.validation import N_CAE, validate
 
     table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds,
-                     n_cae=args.n_cae or N_CAE)
-    runs = table.drop_duplicates(["withheld", "strength", "seed"])
+                     n_cae=args.n_cae or N_CAE, worlds=args.worlds)
+    runs = table.drop_duplicates(["world", "withheld", "strength", "seed"])
     print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with the right first effect -> {args.out}")
     return 0
 
@@ -422,6 +422,8 @@ def _add_world_validate(wsub) -> None:
                    help="effects withheld one at a time (the control with none is always added)")
     s.add_argument("--strengths", nargs="+", choices=("realistic", "subtle"), default=["realistic", "subtle"])
     s.add_argument("--seeds", nargs="+", type=_seed, default=[0], help="world seeds (default 0)")
+    s.add_argument("--worlds", nargs="+", choices=("first", "multibody"), default=["first"],
+                   help="worlds whose campaigns are diagnosed (default first; multibody scores the verdict only)")
     s.add_argument("--n-cae", type=_positive, default=None,
                    help="CAE runs per campaign besides the companions (default: the harness's N_CAE)")
     s.add_argument("--out", required=True, help="output folder for validation.csv and validation.md")
@@ -588,7 +590,7 @@ _FLAGS = {
     "world generate": {"preset": "--preset", "withhold": "--withhold", "strength": "--strength",
                        "overrides": "--effect-param", "seed": "--seed", "matrix": "--matrix", "n_cae": "--n-cae"},
     "world calibrate": {"max_nfev": "--max-evals"},
-    "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds"},
+    "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds", "worlds": "--worlds"},
     "world validate-method": {"worlds": "--worlds", "withheld": "--withheld", "strengths": "--strengths",
                               "seeds": "--seeds", "matrices": "--matrices", "n_cae": "--n-cae",
                               "inputs": "--inputs", "ks": "--k", "n_samples": "--samples", "out": "--out",

@@ -209,6 +209,19 @@ def test_small_validation_matrix(tmp_path):
     assert (tmp_path / "validation.md").read_text().count("| damping |") >= 1
 
 
+def test_validation_on_the_second_world(tmp_path):
+    """The harness on the second world (laws of other forms): its engine reaches the barrier in the
+    35 mph tests only, and the verdict names it; the control stays empty. Verdicts only: the
+    second world's parameters are not the diagnosis' headline quantities."""
+    from crashfuse.world.validation import validate
+    table = validate(tmp_path, effects=("powertrain",), strengths=("realistic",), seeds=(0,), worlds=("multibody",),
+                     candidates=("powertrain", "damping", "mass"), progress=None, n_cae=150)
+    assert list(table["world"]) == ["multibody", "multibody"] and list(table["verdict"]) == ["powertrain", "none"]
+    assert table["parameter"].eq("").all() and "World `multibody`" in (tmp_path / "validation.md").read_text()
+    with pytest.raises(InputError, match="unknown world"):
+        validate(tmp_path, worlds=("third",), progress=None)
+
+
 def test_paper_campaign_verdict():
     """On the paper preset the verdict is strain_rate and powertrain, nothing else."""
     # Three companions never stop inside the record: their unloading comes from the surrogate, which
