@@ -348,3 +348,11 @@ def test_the_only_affected_test_of_its_label_is_not_counted():
     assert not judge(ref, cand, change, tests, threshold=0.1).accepted  # 3 wins, 1 loss: p = 5/16
     ev = judge(ref, cand, change, tests, threshold=0.1, groups=labels)
     assert list(np.flatnonzero(ev.sole)) == [8] and (ev.wins, ev.losses) == (3, 0) and ev.accepted
+
+
+def test_a_single_test_in_sample_is_judged_without_a_sign_test():
+    from crashfuse.diagnosis.diagnose import _rule
+    rule = _rule(0.1, ALPHA, MOVE, holdout=False)
+    assert judge([100.0], [10.0], [10.0], [TEST_RMS], **rule).accepted  # one fold: p = 1/2, no test possible
+    assert not judge([100.0], [10.0], [1.0], [TEST_RMS], **rule).accepted  # the prediction hardly moved
+    assert not judge([100.0], [10.0], [10.0], [TEST_RMS], **_rule(0.1, ALPHA, MOVE, holdout=True)).accepted

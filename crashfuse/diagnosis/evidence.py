@@ -165,8 +165,9 @@ def judge(reference_mse, candidate_mse, change_rms, test_rms, threshold: float, 
 
 
 def _no_evidence(n: int, p: float, n_material: int, scatter: float, alpha: float, min_affected: int) -> str:
-    if n < MIN_MATERIAL:
-        return f"acts on {n} counted folds, fewer than {MIN_MATERIAL}"
+    fewest = min(MIN_MATERIAL, min_affected)
+    if n < fewest:
+        return f"acts on {n} counted folds, fewer than {fewest}"
     beyond = f"better by more than the scatter {scatter / G0:.2f} g on {n_material} of {n}"
     if n < min_affected:
         return f"acts on {n} counted folds (fewer than {min_affected} for the sign test), {beyond}"
