@@ -59,7 +59,7 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
     design = resolve("withheld", withhold=withheld, strength=strength)
     generate(folder, design, seed=seed, n_cae=n_cae)
     campaign = read_campaign(folder)
-    world = json.loads((folder / WORLD_JSON).read_text())
+    answer = json.loads((folder / WORLD_JSON).read_text())
     t0 = time.perf_counter()
     diag = diagnose(campaign, effects=candidates, residual_model=False, regions=False, random_state=seed,
                     progress=progress)
@@ -83,7 +83,7 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
     effect = next(e for e in js["effects"] if e["effect"] == withheld)
     fitted, se = effect["headline"], effect["headline_se"]
     rows = []
-    for name, true in true_headline(world, withheld, campaign).items():
+    for name, true in true_headline(answer, withheld, campaign).items():
         err = abs(fitted[name] - true) / abs(true)
         rows.append(dict(base, parameter=name, true=true, fitted=fitted[name],
                          fitted_se=np.nan if se[name] is None else se[name], rel_error=err,
