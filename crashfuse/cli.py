@@ -510,8 +510,8 @@ def _add_diagnose(sub) -> None:
                    help=f"candidate effects (default all: {' '.join(EFFECTS)})")
     s.add_argument("--threshold", type=float, default=0.10,
                    help="relative drop of the held-out squared error an effect must bring (default 0.10)")
-    s.add_argument("--alpha", type=float, default=0.10,
-                   help="level of the one-sided sign test over the folds an effect acts on (default 0.10)")
+    s.add_argument("--alpha", type=float, default=0.125,
+                   help="level of the one-sided sign test over the folds an effect acts on (default 0.125)")
     s.add_argument("--move", type=float, default=0.05,
                    help="an effect acts on a fold when it moves the held-out prediction by more than this "
                         "share of the test's rms deceleration (default 0.05)")

@@ -330,7 +330,7 @@ def test_three_folds_are_evidence_only_when_each_wins_beyond_the_scatter():
     tests = np.full(N_FOLDS, TEST_RMS)
     ref, cand, change = _subset_effect(n_acting=3, gain=0.8)  # 3 g -> 1.3 g rms on the three
     ev = judge(ref, cand, change, tests, threshold=0.1)
-    assert ev.p_value == pytest.approx(1 / 8) and ev.p_value > ALPHA
+    assert ev.p_value == pytest.approx(1 / 8) and (ev.wins, ev.losses) == (3, 0)  # the sign test needs four
     assert ev.scatter == pytest.approx(5.0) and ev.material.sum() == 3 and ev.accepted
     ref, cand, change = _subset_effect(n_acting=3, gain=0.3)  # 3 g -> 2.5 g: less than the 0.5 g scatter
     ev = judge(ref, cand, change, tests, threshold=0.1)
@@ -356,3 +356,13 @@ def test_a_single_test_in_sample_is_judged_without_a_sign_test():
     assert judge([100.0], [10.0], [10.0], [TEST_RMS], **rule).accepted  # one fold: p = 1/2, no test possible
     assert not judge([100.0], [10.0], [1.0], [TEST_RMS], **rule).accepted  # the prediction hardly moved
     assert not judge([100.0], [10.0], [10.0], [TEST_RMS], **_rule(0.1, ALPHA, MOVE, holdout=True)).accepted
+
+
+def test_an_effect_on_every_test_needs_no_more_wins_than_under_the_old_rule():
+    """Eight of eleven folds better (two thirds, the old rule) passes the sign test; seven does not."""
+    tests = np.full(N_FOLDS, TEST_RMS)
+    for better, accepted in ((8, True), (7, False)):
+        ref = np.full(N_FOLDS, 100.0)
+        cand = np.where(np.arange(N_FOLDS) < better, 40.0, 110.0)
+        ev = judge(ref, cand, np.full(N_FOLDS, 0.2 * TEST_RMS), tests, threshold=0.1)
+        assert ev.accepted is accepted and ev.ratio < 0.9, better
