@@ -107,8 +107,7 @@ class Diagnosis:
 
 @one_blas_thread  # the effect fits' normal equations: the same bits on any machine
 def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, alpha: float = ALPHA,
-             move: float = MOVE,
-             k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
+             move: float = MOVE, k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
              surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,
              regions: bool = True, progress=print) -> Diagnosis:
     """Diagnose the gap between a campaign's CAE runs and its tests.
