@@ -118,8 +118,8 @@ def _world_validate(args) -> int:
     from crashfuse.world.validation import N_CAE, validate
 
     table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds,
-                     n_cae=args.n_cae or N_CAE)
-    runs = table.drop_duplicates(["withheld", "strength", "seed"])
+                     n_cae=args.n_cae or N_CAE, worlds=args.worlds)
+    runs = table.drop_duplicates(["world", "withheld", "strength", "seed"])
     print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with the right first effect -> {args.out}")
     return 0
 
@@ -220,8 +220,8 @@ def _diagnose(args) -> int:
     surrogate = load_surrogate(args.surrogate) if args.surrogate else None
     if surrogate is not None:
         surrogate.check_campaign(campaign, args.surrogate)
-    diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, min_wins=args.min_wins, k=args.k,
-                    inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
+    diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, alpha=args.alpha, move=args.move,
+                    k=args.k, inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
                     in_sample=args.in_sample, residual_model=not args.no_residual)
     out = write_diagnosis(diag, args.out, campaign)
     print(f"verdict: {', '.join(diag.verdict) or 'none'} -> {out / 'diagnosis.md'}")
@@ -427,6 +427,8 @@ def _add_world_validate(wsub) -> None:
                    help="effects withheld one at a time (the control with none is always added)")
     s.add_argument("--strengths", nargs="+", choices=("realistic", "subtle"), default=["realistic", "subtle"])
     s.add_argument("--seeds", nargs="+", type=_seed, default=[0], help="world seeds (default 0)")
+    s.add_argument("--worlds", nargs="+", choices=("first", "multibody"), default=["first"],
+                   help="worlds whose campaigns are diagnosed (default first; multibody scores the verdict only)")
     s.add_argument("--n-cae", type=_positive, default=None,
                    help="CAE runs per campaign besides the companions (default: the harness's N_CAE)")
     s.add_argument("--out", required=True, help="output folder for validation.csv and validation.md")
@@ -513,8 +515,11 @@ def _add_diagnose(sub) -> None:
                    help=f"candidate effects (default all: {' '.join(EFFECTS)})")
     s.add_argument("--threshold", type=float, default=0.10,
                    help="relative drop of the held-out squared error an effect must bring (default 0.10)")
-    s.add_argument("--min-wins", type=float, default=2 / 3,
-                   help="share of folds whose held-out error must drop (default 2/3)")
+    s.add_argument("--alpha", type=float, default=0.125,
+                   help="level of the one-sided sign test over the folds an effect acts on (default 0.125)")
+    s.add_argument("--move", type=float, default=0.05,
+                   help="an effect acts on a fold when it moves the held-out prediction by more than this "
+                        "share of the test's rms deceleration (default 0.05)")
     s.add_argument("--k", type=_positive, default=1,
                    help="mixture size of the bias model of the gap map and the GMM-GPR rows (default 1)")
     s.add_argument("--samples", type=_positive, default=200, help="Monte Carlo samples per GMM-GPR fold (default 200)")
@@ -584,14 +589,14 @@ _FLAGS = {
     "fit": _METHOD_FLAGS,
     "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out"},
     "predict": {"n_samples": "--samples", "random_state": "--seed", "band": "--band"},
-    "diagnose": {"effects": "--effects", "threshold": "--threshold", "min_wins": "--min-wins", "k": "--k",
-                 "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed"},
+    "diagnose": {"effects": "--effects", "threshold": "--threshold", "alpha": "--alpha", "move": "--move",
+                 "k": "--k", "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed"},
     "report": {"score": "--score"},
     "plot summary": {"score": "--score", "window": "--window"},
     "world generate": {"preset": "--preset", "withhold": "--withhold", "strength": "--strength",
                        "overrides": "--effect-param", "seed": "--seed", "matrix": "--matrix", "n_cae": "--n-cae"},
     "world calibrate": {"max_nfev": "--max-evals"},
-    "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds"},
+    "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds", "worlds": "--worlds"},
     "world validate-method": {"worlds": "--worlds", "withheld": "--withheld", "strengths": "--strengths",
                               "seeds": "--seeds", "matrices": "--matrices", "n_cae": "--n-cae",
                               "inputs": "--inputs", "ks": "--k", "n_samples": "--samples", "out": "--out",

@@ -11,7 +11,8 @@ import pytest
 from crashfuse.catalogue import EFFECTS
 from crashfuse.method import effect_fit as ef
 from crashfuse.cli import main
-from crashfuse.diagnosis.diagnose import diagnose, write_diagnosis
+from crashfuse.diagnosis.diagnose import Candidate, diagnose, write_diagnosis
+from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, sign_test
 from crashfuse.signals.dynamics import State
 from crashfuse.method.laws import decel_fn, headline, parameters
 from crashfuse.errors import InputError
@@ -144,6 +145,11 @@ def test_the_cae_speed_sensitivity_does_not_depend_on_the_cae_design():
     assert np.all(slopes[0] > 3e3)  # the CAE's own damping (4 kN s/m, ramped in over 2 cm) and rate hardening
 
 
+def _tie(n):
+    """The evidence of a candidate that changes nothing."""
+    return judge(np.ones(n), np.ones(n), np.zeros(n), np.ones(n), threshold=0.1)
+
+
 def test_control_gives_an_empty_verdict(control_world):
     diag = diagnose(control_world[0], effects=("damping", "mass"), residual_model=False, regions=False, progress=None)
     assert diag.verdict == []
@@ -158,7 +164,10 @@ def test_diagnosis_files(damping_world, tmp_path):
     assert {"verdict", "effects", "regions", "shrink"} <= set(js)
     assert js["effects"][0]["params"]["damping.c"]["unit"] == "N s/m"
     assert js["effects"][0]["params"]["damping.c"]["identified"]
-    assert "Verdict" in (out / "diagnosis.md").read_text()
+    evidence = js["effects"][0]["evidence"]
+    assert evidence["accepted"] and len(evidence["acts_on"]) >= 4 and set(evidence["acts_on"]) <= set(campaign.tests)
+    assert evidence["folds_better"] + evidence["folds_worse"] == len(evidence["acts_on"]) - len(evidence["not_counted"])
+    assert "Verdict" in (out / "diagnosis.md").read_text() and "acts on" in (out / "diagnosis.md").read_text()
     assert {"intervals", "windows", "regimes"} <= set(js["regions"])
     for name in ("effects.png", "bias_map.png", "gap_pulses.png"):
         assert (out / "figures" / name).stat().st_size > 0
@@ -200,6 +209,19 @@ def test_small_validation_matrix(tmp_path):
     assert (tmp_path / "validation.md").read_text().count("| damping |") >= 1
 
 
+def test_validation_on_the_second_world(tmp_path):
+    """The harness on the second world (laws of other forms): its engine reaches the barrier in the
+    35 mph tests only, and the verdict names it; the control stays empty. Verdicts only: the
+    second world's parameters are not the diagnosis' headline quantities."""
+    from crashfuse.world.validation import validate
+    table = validate(tmp_path, effects=("powertrain",), strengths=("realistic",), seeds=(0,), worlds=("multibody",),
+                     candidates=("powertrain", "damping", "mass"), progress=None, n_cae=150)
+    assert list(table["world"]) == ["multibody", "multibody"] and list(table["verdict"]) == ["powertrain", "none"]
+    assert table["parameter"].eq("").all() and "World `multibody`" in (tmp_path / "validation.md").read_text()
+    with pytest.raises(InputError, match="unknown world"):
+        validate(tmp_path, worlds=("third",), progress=None)
+
+
 def test_paper_campaign_verdict():
     """On the paper preset the verdict is strain_rate and powertrain, nothing else."""
     # Three companions never stop inside the record: their unloading comes from the surrogate, which
@@ -211,30 +233,136 @@ def test_paper_campaign_verdict():
 
 
 def test_a_law_at_its_upper_bound_is_flagged(case):
-    from crashfuse.diagnosis.diagnose import Candidate
     params = ef.parameters_to_fit(case, ("mass",))
     upper = params[0].upper
     at_bound = ef.FoldFits(("mass",), params, np.array([[0.5 * upper], [upper]]), np.zeros(2))
-    assert Candidate("mass", 1, at_bound, np.ones(2), np.ones(2)).at_upper_bound == ["mass.extra"]
+    assert Candidate("mass", 1, at_bound, np.ones(2), np.ones(2), _tie(2), []).at_upper_bound == ["mass.extra"]
     inside = ef.FoldFits(("mass",), params, np.array([[upper], [0.5 * upper]]), np.zeros(2))
-    assert Candidate("mass", 1, inside, np.ones(2), np.ones(2)).at_upper_bound == []  # the all-tests row decides
+    # the all-tests row decides
+    assert Candidate("mass", 1, inside, np.ones(2), np.ones(2), _tie(2), []).at_upper_bound == []
 
 
 def test_the_weak_end_of_the_search_box_is_not_a_physical_limit(case):
     """A large rate reference d means little hardening: a subtle rate effect may fit there (q inside)."""
-    from crashfuse.diagnosis.diagnose import Candidate
     params = ef.parameters_to_fit(case, ("strain_rate",))
     d, q = params
     weak = ef.FoldFits(("strain_rate",), params, np.array([[d.upper, 6.0]] * 2), np.zeros(2))
-    assert Candidate("strain_rate", 1, weak, np.ones(2), np.ones(2)).at_upper_bound == []
+    assert Candidate("strain_rate", 1, weak, np.ones(2), np.ones(2), _tie(2), []).at_upper_bound == []
     flat = ef.FoldFits(("strain_rate",), params, np.array([[1e4, q.upper]] * 2), np.zeros(2))
-    assert Candidate("strain_rate", 1, flat, np.ones(2), np.ones(2)).at_upper_bound == ["strain_rate.q"]
+    assert Candidate("strain_rate", 1, flat, np.ones(2), np.ones(2), _tie(2), []).at_upper_bound == ["strain_rate.q"]
 
 
 def test_a_parameter_that_never_left_its_start_is_not_identified(case):
-    from crashfuse.diagnosis.diagnose import Candidate, _candidate_json
+    from crashfuse.diagnosis.diagnose import _candidate_json
     params = ef.parameters_to_fit(case, ("damping",))
     for all_tests, identified in ((params[0].start[0], False), (2500.0, True)):
         fits = ef.FoldFits(("damping",), params, np.array([[2500.0], [all_tests]]), np.zeros(2))
-        js = _candidate_json(Candidate("damping", 1, fits, np.ones(1), np.ones(1)), case)
+        js = _candidate_json(Candidate("damping", 1, fits, np.ones(1), np.ones(1), _tie(1), []), case)
         assert js["params"]["damping.c"]["identified"] is identified
+
+
+# The acceptance rule on synthetic fold errors (crashfuse.diagnosis.evidence): 11 folds, test rms 10 g.
+N_FOLDS, TEST_RMS = 11, 98.0
+
+
+def _subset_effect(n_acting=4, gain=0.8):
+    """An effect acting on the ``n_acting`` fastest tests: their held-out error falls by ``gain``, the
+    other folds' predictions do not move at all (their errors tie)."""
+    ref = np.full(N_FOLDS, 25.0)  # (m/s^2)^2: 0.5 g rms where nothing acts
+    ref[-n_acting:] = 900.0  # 3 g rms where the engine hits
+    cand = ref.copy()
+    cand[-n_acting:] *= 1.0 - gain
+    change = np.zeros(N_FOLDS)
+    change[-n_acting:] = 0.3 * TEST_RMS
+    return ref, cand, change
+
+
+def test_sign_test():
+    assert sign_test(4, 4) == pytest.approx(1 / 16)
+    assert sign_test(3, 4) == pytest.approx(5 / 16)
+    assert sign_test(0, 0) == 1.0
+    assert sign_test(0, 5) == 1.0
+
+
+def test_an_effect_acting_on_a_third_of_the_tests_is_accepted():
+    ref, cand, change = _subset_effect()
+    ev = judge(ref, cand, change, np.full(N_FOLDS, TEST_RMS), threshold=0.1)
+    assert ev.accepted, ev.reason
+    assert list(np.flatnonzero(ev.affected)) == [7, 8, 9, 10]
+    assert (ev.wins, ev.losses) == (4, 0) and ev.p_value == pytest.approx(1 / 16)
+    # the old rule (lower on two thirds of all folds, a tie a loss) refused it
+    assert (cand < ref).sum() < np.ceil(2 / 3 * N_FOLDS)
+
+
+def test_noise_level_changes_are_refused():
+    """The same MSE ratio on a control, from prediction changes at the noise level: no fold is affected."""
+    ref, cand, _ = _subset_effect()
+    ratio = cand.sum() / ref.sum()
+    control_ref = np.full(N_FOLDS, 1.0)  # a control: 0.1 g rms of noise left on every test
+    control_cand = ratio * control_ref
+    noise_move = np.full(N_FOLDS, 0.5 * MOVE * TEST_RMS)
+    ev = judge(control_ref, control_cand, noise_move, np.full(N_FOLDS, TEST_RMS), threshold=0.1)
+    assert ev.ratio == pytest.approx(ratio) and ev.ratio < 0.5
+    assert not ev.accepted and not ev.affected.any()
+    assert (control_cand < control_ref).all()  # the old rule: lower on 11/11 folds, accepted
+
+
+def test_a_candidate_losing_on_the_folds_it_acts_on_is_refused():
+    ref, cand, change = _subset_effect(n_acting=6, gain=0.95)
+    cand[5:8] = 1.1 * ref[5:8]  # three of the six affected folds get worse, three much better
+    ev = judge(ref, cand, change, np.full(N_FOLDS, TEST_RMS), threshold=0.1)
+    assert ev.ratio < 0.7  # a large drop of the mean held-out error ...
+    assert (ev.wins, ev.losses) == (3, 3) and ev.p_value > ALPHA and not ev.accepted  # ... that is not consistent
+
+
+def test_too_few_affected_folds_or_too_small_a_drop_are_refused():
+    tests = np.full(N_FOLDS, TEST_RMS)
+    ref, cand, change = _subset_effect(n_acting=MIN_MATERIAL - 1)
+    assert not judge(ref, cand, change, tests, threshold=0.1).accepted  # 2 wins of 2
+    ref, cand, change = _subset_effect(n_acting=N_FOLDS, gain=0.05)  # consistent but practically small
+    ev = judge(ref, cand, change, tests, threshold=0.1)
+    assert ev.p_value < ALPHA and not ev.accepted and "ratio" in ev.reason
+
+
+def test_three_folds_are_evidence_only_when_each_wins_beyond_the_scatter():
+    """Three of three affected folds better (sign test p = 1/8): accepted when every one is predicted
+    better by more than the held-out error a typical test keeps (0.5 g here), refused when by less."""
+    tests = np.full(N_FOLDS, TEST_RMS)
+    ref, cand, change = _subset_effect(n_acting=3, gain=0.8)  # 3 g -> 1.3 g rms on the three
+    ev = judge(ref, cand, change, tests, threshold=0.1)
+    assert ev.p_value == pytest.approx(1 / 8) and (ev.wins, ev.losses) == (3, 0)  # the sign test needs four
+    assert ev.scatter == pytest.approx(5.0) and ev.material.sum() == 3 and ev.accepted
+    ref, cand, change = _subset_effect(n_acting=3, gain=0.3)  # 3 g -> 2.5 g: less than the 0.5 g scatter
+    ev = judge(ref, cand, change, tests, threshold=0.1)
+    assert ev.ratio < 0.9 and ev.material.sum() == 0 and not ev.accepted
+
+
+def test_the_only_affected_test_of_its_label_is_not_counted():
+    """A per-label law fits that label from no test it acts on when its only such test is held out:
+    that fold's loss is not evidence against the effect."""
+    tests = np.full(N_FOLDS, TEST_RMS)
+    ref, cand, change = _subset_effect(n_acting=4, gain=0.8)
+    cand[8] = 2.0 * ref[8]  # the held-out prediction of the label's only affected test is poor
+    labels = np.array([0, 1] * 5 + [1])
+    labels[8] = 0  # T09 the only label-0 test among the affected T08-T11
+    assert not judge(ref, cand, change, tests, threshold=0.1).accepted  # 3 wins, 1 loss: p = 5/16
+    ev = judge(ref, cand, change, tests, threshold=0.1, groups=labels)
+    assert list(np.flatnonzero(ev.sole)) == [8] and (ev.wins, ev.losses) == (3, 0) and ev.accepted
+
+
+def test_a_single_test_in_sample_is_judged_without_a_sign_test():
+    from crashfuse.diagnosis.diagnose import _rule
+    rule = _rule(0.1, ALPHA, MOVE, holdout=False)
+    assert judge([100.0], [10.0], [10.0], [TEST_RMS], **rule).accepted  # one fold: p = 1/2, no test possible
+    assert not judge([100.0], [10.0], [1.0], [TEST_RMS], **rule).accepted  # the prediction hardly moved
+    assert not judge([100.0], [10.0], [10.0], [TEST_RMS], **_rule(0.1, ALPHA, MOVE, holdout=True)).accepted
+
+
+def test_an_effect_on_every_test_needs_no_more_wins_than_under_the_old_rule():
+    """Eight of eleven folds better (two thirds, the old rule) passes the sign test; seven does not."""
+    tests = np.full(N_FOLDS, TEST_RMS)
+    for better, accepted in ((8, True), (7, False)):
+        ref = np.full(N_FOLDS, 100.0)
+        cand = np.where(np.arange(N_FOLDS) < better, 40.0, 110.0)
+        ev = judge(ref, cand, np.full(N_FOLDS, 0.2 * TEST_RMS), tests, threshold=0.1)
+        assert ev.accepted is accepted and ev.ratio < 0.9, better

@@ -6,8 +6,9 @@
    Effects are compared on held-out evidence: the leave-one-test-out mean squared error of the
    CAE + effects rollout against the held-out test over its record. Greedy forward selection: each
    round fits every remaining effect together with those already chosen (all folds at once) and
-   adds the best one only if it lowers the held-out error by at least ``threshold`` (relative)
-   AND on at least ``min_wins`` of the folds, and none of its own parameters sits at its upper
+   adds the best one only if its evidence holds (:mod:`crashfuse.diagnosis.evidence`: judged on the
+   folds whose held-out prediction it changes materially, a sign test over them at ``alpha``, and a
+   held-out error drop of at least ``threshold``) and none of its own parameters sits at its upper
    bound (the law would need more than is physical); otherwise the search stops - possibly with nothing
    chosen, when no effect explains the gap beyond what measurement noise and the CAE model's own
    scatter do.
@@ -22,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +34,7 @@ from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto
                                             test_case)
 from crashfuse.method.laws import headline
 from crashfuse.errors import InputError
+from crashfuse.diagnosis.evidence import ALPHA, MOVE, Evidence, judge
 from crashfuse.diagnosis.gap import locate_gap
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import Campaign
@@ -44,7 +45,6 @@ from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MPH, MS
 
 THRESHOLD = 0.10  # relative drop of the held-out mean squared error an effect must bring
-MIN_WINS = 2 / 3  # share of folds whose held-out error must drop
 
 
 @dataclasses.dataclass
@@ -56,15 +56,17 @@ class Candidate:
     fits: FoldFits
     heldout_mse: np.ndarray  # (n_tests,) (m/s^2)^2, fold i predicting test i
     reference_mse: np.ndarray  # the same for the effects chosen before this round
+    evidence: Evidence
+    acts_on: list  # test ids of the affected folds
     chosen: bool = False
 
     @property
     def ratio(self) -> float:
-        return float(self.heldout_mse.mean() / self.reference_mse.mean())
+        return self.evidence.ratio
 
     @property
     def wins(self) -> int:
-        return int((self.heldout_mse < self.reference_mse).sum())
+        return self.evidence.wins
 
     @property
     def at_upper_bound(self) -> list:
@@ -104,8 +106,8 @@ class Diagnosis:
 
 
 @one_blas_thread  # the effect fits' normal equations: the same bits on any machine
-def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, min_wins: float = MIN_WINS,
-             k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
+def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, alpha: float = ALPHA,
+             move: float = MOVE, k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
              surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,
              regions: bool = True, progress=print) -> Diagnosis:
     """Diagnose the gap between a campaign's CAE runs and its tests.
@@ -117,9 +119,13 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     effects : sequence of str
         Candidate effects (catalogue names).
     threshold : float
-        Minimum relative drop of the held-out mean squared error for an effect to be added.
-    min_wins : float
-        Minimum share of folds whose held-out error must drop.
+        Minimum relative drop of the held-out mean squared error for an effect to be added (over
+        every fold and over the folds it acts on).
+    alpha : float
+        Level of the one-sided sign test over the folds the effect acts on.
+    move : float
+        A fold is one the effect acts on when its held-out prediction moves by more than this
+        share of the test's rms deceleration.
     k, inputs : int, str
         The GMM-GPR residual model (mixture size, input mode) of the shrink table.
     n_samples : int
@@ -142,7 +148,7 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     """
     say = progress or (lambda line: None)
     effects = [check_effect(e, "effects") for e in dict.fromkeys(effects)]
-    _check(campaign, threshold, min_wins, in_sample)
+    _check(campaign, threshold, alpha, move, in_sample)
     holdout = len(campaign.tests) >= 2
     regions = regions and holdout
     if surrogate is None and (regions or (holdout and residual_model)):  # fit it once for every part
@@ -151,53 +157,82 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     n = len(case.test_ids)
     sets = loto_sets(n) if holdout else [[0], [0]]  # a single test: its in-sample fit, twice
     cae = fit_folds(case, (), sets)
-    chosen, candidates, current = _select(case, sets, cae, effects, threshold, min_wins, say)
+    chosen, candidates, current = _select(case, sets, cae, effects, _rule(threshold, alpha, move, holdout), say)
     preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
              "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
     shrink = _shrink(campaign, case, preds, current, k, inputs, n_samples, random_state, surrogate,
                      holdout and residual_model, say)
-    settings = dict(effects=list(effects), threshold=threshold, min_wins=min_wins, k=k, inputs=inputs,
+    settings = dict(effects=list(effects), threshold=threshold, alpha=alpha, move=move, k=k, inputs=inputs,
                     n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware)
     gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
     return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap)
 
 
-def _select(case: TestCase, sets, cae: FoldFits, effects, threshold: float, min_wins: float, say):
+def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, say):
     """Greedy forward selection on held-out evidence over the training ``sets`` of ``cae``;
-    returns (chosen, candidates, final fits)."""
+    ``rule`` holds :func:`crashfuse.diagnosis.evidence.judge`'s threshold, alpha and move.
+    Returns (chosen, candidates, final fits)."""
     n = len(case.test_ids)
     chosen, candidates, current = [], {}, cae
-    reference = _heldout(case, cae)
+    ref_pred, reference = _heldout(case, cae)
+    test_rms = _rms(case, case.target)
     say(f"diagnose: {n} tests, CAE held-out rms {_rms_g(reference):.3f} g")
     for rnd in range(1, len(effects) + 1):
         remaining = [e for e in effects if e not in chosen]
         if not remaining:
             break
+        preds = {}
         for e in remaining:
             fits = fit_folds(case, (*chosen, e), sets, start=_start(case, current, e))
-            candidates[e] = Candidate(e, rnd, fits, _heldout(case, fits), reference)
-            c = candidates[e]
-            say(f"  round {rnd} +{e}: held-out rms {_rms_g(c.heldout_mse):.3f} g (x{c.ratio:.3f} MSE), "
-                f"better on {c.wins}/{n}")
+            preds[e], mse = _heldout(case, fits)
+            change = _rms(case, preds[e] - ref_pred)
+            ev = judge(reference, mse, change, test_rms, groups=_groups(case, fits, e), **rule)
+            acts_on = [t for t, a in zip(case.test_ids, ev.affected) if a]
+            candidates[e] = c = Candidate(e, rnd, fits, mse, reference, ev, acts_on)
+            say(f"  round {rnd} +{e}: held-out rms {_rms_g(mse):.3f} g (x{c.ratio:.3f} MSE), acts on "
+                f"{' '.join(acts_on) or 'no test'}{_sole_note(case, ev)}: better on {ev.wins}, worse on {ev.losses} "
+                f"(sign test p {ev.p_value:.3g}, x{ev.affected_ratio:.3f} MSE there)")
         eligible = [e for e in remaining if not candidates[e].at_upper_bound]
         if not eligible:
             break
         best = min(eligible, key=lambda e: candidates[e].ratio)
         c = candidates[best]
-        if c.ratio > 1.0 - threshold or c.wins < math.ceil(min_wins * n):
+        if not c.evidence.accepted:
+            say(f"diagnose: +{best} refused: {c.evidence.reason}")
             break
         c.chosen = True
         chosen.append(best)
-        current, reference = c.fits, c.heldout_mse
+        current, reference, ref_pred = c.fits, c.heldout_mse, preds[best]
     say(f"diagnose: verdict {chosen or 'none'}")
     return chosen, candidates, current
 
 
-def _check(campaign, threshold, min_wins, in_sample):
+def _sole_note(case: TestCase, ev: Evidence) -> str:
+    sole = [t for t, x in zip(case.test_ids, ev.sole) if x]
+    return f" ({' '.join(sole)} the only one of its label: not counted)" if sole else ""
+
+
+def _groups(case: TestCase, fits: FoldFits, effect: str):
+    """The powertrain label of each test when ``effect``'s law has parameters per label, else None."""
+    per_label = any("[" in p.name for p in fits.params if p.name.startswith(effect + "."))
+    return case.plant.group if per_label else None
+
+
+def _rule(threshold: float, alpha: float, move: float, holdout: bool) -> dict:
+    """The settings of :func:`crashfuse.diagnosis.evidence.judge`. In-sample (one test) there are
+    no folds to test: the evidence is the threshold on the in-sample error of a test it acts on."""
+    if holdout:
+        return dict(threshold=threshold, alpha=alpha, move=move)
+    return dict(threshold=threshold, alpha=1.0, move=move, min_affected=1)
+
+
+def _check(campaign, threshold, alpha, move, in_sample):
     if not (0 <= threshold < 1):
         raise InputError(f"expected a threshold in [0, 1), got {threshold}", field="threshold")
-    if not (0 < min_wins <= 1):
-        raise InputError(f"expected min_wins in (0, 1], got {min_wins}", field="min_wins")
+    if not (0 < alpha < 1):
+        raise InputError(f"expected alpha in (0, 1), got {alpha}", field="alpha")
+    if not (move >= 0):
+        raise InputError(f"expected a non-negative move, got {move}", field="move")
     if len(campaign.tests) < 2 and not in_sample:
         raise InputError(f"the campaign has {len(campaign.tests)} test(s): a held-out diagnosis needs at least 2; "
                          f"an in-sample one (in_sample) fits a single test without hold-out", campaign.root, "source")
@@ -208,9 +243,15 @@ def _fold_rows(n: int) -> np.ndarray:
     return np.arange(n)
 
 
-def _heldout(case: TestCase, fits: FoldFits) -> np.ndarray:
+def _heldout(case: TestCase, fits: FoldFits):
+    """Held-out prediction (n_tests, n_t) and mean squared error (n_tests,) of every fold."""
     n = len(case.test_ids)
-    return predict(case, fits, _fold_rows(n), range(n))[1]
+    return predict(case, fits, _fold_rows(n), range(n))
+
+
+def _rms(case: TestCase, decel: np.ndarray) -> np.ndarray:
+    """Rms of each row over its test's record, m/s^2."""
+    return np.sqrt((np.where(case.mask, decel, 0.0) ** 2).sum(axis=1) / case.mask.sum(axis=1))
 
 
 def _rms_g(mse: np.ndarray) -> float:
@@ -300,8 +341,12 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
     return {
         "effect": c.effect, "chosen": c.chosen, "params": params,
         "headline": head, "headline_se": {k: _num(x) for k, x in zip(head, head_se)},
-        "evidence": {"round": c.round, "heldout_mse_ratio": c.ratio, "folds_better": c.wins,
-                     "at_upper_bound": c.at_upper_bound,
+        "evidence": {"round": c.round, "heldout_mse_ratio": c.ratio, "acts_on": list(c.acts_on),
+                     "not_counted": [t for t, x in zip(case.test_ids, c.evidence.sole) if x],
+                     "folds_better": c.wins, "folds_worse": c.evidence.losses, "sign_test_p": c.evidence.p_value,
+                     "scatter_g": c.evidence.scatter / G0, "folds_beyond_scatter": int(c.evidence.material.sum()),
+                     "affected_mse_ratio": c.evidence.affected_ratio, "accepted": c.evidence.accepted,
+                     "refused_because": c.evidence.reason, "at_upper_bound": c.at_upper_bound,
                      "n_folds": int(c.heldout_mse.size), "heldout_rms_g": _rms_g(c.heldout_mse),
                      "reference_rms_g": _rms_g(c.reference_mse), "fitted_with": list(c.fits.effects)},
         "reading": reading(c.effect, own(all_fit), case),
@@ -376,15 +421,18 @@ def markdown(js: dict) -> str:
     if not js["holdout"]:
         lines += ["**One test, no hold-out:** the evidence below is in-sample fit, not prediction.", ""]
     lines += ["## Which effect", "",
-              "| effect | chosen | round | held-out MSE ratio | folds better | headline | reading |",
-              "|---|---|---|---|---|---|---|"]
+              "| effect | chosen | round | held-out MSE ratio | acts on (held-out prediction moves) | "
+              "better / worse there | sign test p | MSE ratio there | headline | reading |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for e in js["effects"]:
         ev = e["evidence"]
         se = e["headline_se"]
         head = ", ".join(f"{k} = {v:.4g}" + ("" if se[k] is None else f" (se {se[k]:.2g})")
                          for k, v in e["headline"].items())
         lines.append(f"| {e['effect']} | {'yes' if e['chosen'] else 'no'} | {ev['round']} | "
-                     f"{ev['heldout_mse_ratio']:.3f} | {ev['folds_better']}/{ev['n_folds']} | {head} | {e['reading']} |")
+                     f"{ev['heldout_mse_ratio']:.3f} | {' '.join(ev['acts_on']) or 'none'} "
+                     f"({len(ev['acts_on'])}/{ev['n_folds']}) | {ev['folds_better']} / {ev['folds_worse']} | "
+                     f"{ev['sign_test_p']:.3g} | {ev['affected_mse_ratio']:.3f} | {head} | {e['reading']} |")
     lines += ["", "Fitted parameters (all tests; jackknife standard error over the folds):", ""]
     for e in js["effects"]:
         ps = "; ".join(f"{k} = {v['value']:.4g} {v['unit']}" + (f" (se {v['jackknife_se']:.2g})"

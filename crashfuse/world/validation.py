@@ -20,18 +20,22 @@ import pandas as pd
 
 from crashfuse.catalogue import EFFECTS
 from crashfuse.diagnosis.diagnose import diagnose
+from crashfuse.errors import InputError
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import read_campaign
 from crashfuse.world import effects as world_effects
-from crashfuse.world.generate import WORLD_JSON, generate
-from crashfuse.world.presets import resolve
+from crashfuse.world import generate as first_generate, presets as first_presets
+from crashfuse.world.generate import WORLD_JSON
+from crashfuse.world.multibody import generate as second_generate, presets as second_presets
 
 TOLERANCE = {"realistic": 0.25, "subtle": 0.50}  # relative error allowed on a headline quantity
 # CAE runs per campaign besides the companions: the surrogate behind the reference beyond each CAE
 # run's crush (where a heavier test goes) needs them; with 300 every withheld effect comes first
 # (docs/decisions.md, section 17).
 N_CAE = 300
-COLUMNS = ("withheld", "strength", "seed", "verdict", "first", "first_correct", "spurious", "parameter", "true",
+WORLDS = {"first": (first_presets.resolve, first_generate.generate),
+          "multibody": (second_presets.resolve, second_generate.generate)}
+COLUMNS = ("world", "withheld", "strength", "seed", "verdict", "first", "first_correct", "spurious", "parameter", "true",
            "fitted", "fitted_se", "rel_error", "within_tolerance", "heldout_mse_ratio", "iso_0_60_cae",
            "iso_0_60_effects", "shrinks", "seconds")
 
@@ -45,20 +49,24 @@ def true_headline(world: dict, effect: str, campaign) -> dict:
 
 
 def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidates=EFFECTS,
-                 progress=None, n_cae: int = N_CAE) -> list[dict]:
-    """Generate one campaign (``n_cae`` CAE runs besides the companions) into ``folder``, diagnose it
-    (``candidates`` effects), score it against world.json."""
+                 progress=None, n_cae: int = N_CAE, world: str = "first") -> list[dict]:
+    """Generate one campaign of ``world`` (``n_cae`` CAE runs besides the companions, Table 1) into
+    ``folder``, diagnose it (``candidates`` effects), score it against world.json.
+
+    The second world's laws have other forms than the diagnosis': its headline quantities have no
+    true value there, so its rows score the verdict only (``parameter`` empty)."""
+    resolve, generate = WORLDS[world]
     design = resolve("withheld", withhold=withheld, strength=strength)
     generate(folder, design, seed=seed, n_cae=n_cae)
     campaign = read_campaign(folder)
-    world = json.loads((folder / WORLD_JSON).read_text())
+    answer = json.loads((folder / WORLD_JSON).read_text())
     t0 = time.perf_counter()
     diag = diagnose(campaign, effects=candidates, residual_model=False, regions=False, random_state=seed,
                     progress=progress)
     seconds = time.perf_counter() - t0
     js = diag.to_json()
     iso = js["shrink"]
-    base = dict(withheld=withheld, strength=strength, seed=seed, verdict=" ".join(diag.verdict) or "none",
+    base = dict(world=world, withheld=withheld, strength=strength, seed=seed, verdict=" ".join(diag.verdict) or "none",
                 first=diag.verdict[0] if diag.verdict else "none",
                 iso_0_60_cae=iso["CAE"]["0-60"], iso_0_60_effects=iso["CAE+effects"]["0-60"], seconds=seconds)
     expected = [] if withheld == "none" else [withheld]
@@ -69,13 +77,13 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
     # 60 ms: ISO 0-60 cannot show it - its row says so rather than pass.
     base["heldout_mse_ratio"] = float(np.prod([diag.candidates[e].ratio for e in diag.verdict]))
     base["shrinks"] = bool(base["iso_0_60_effects"] > base["iso_0_60_cae"]) if expected else None
-    if not expected:
+    if not expected or world != "first":
         return [dict(base, parameter="", true=np.nan, fitted=np.nan, fitted_se=np.nan, rel_error=np.nan,
                      within_tolerance=None)]
     effect = next(e for e in js["effects"] if e["effect"] == withheld)
     fitted, se = effect["headline"], effect["headline_se"]
     rows = []
-    for name, true in true_headline(world, withheld, campaign).items():
+    for name, true in true_headline(answer, withheld, campaign).items():
         err = abs(fitted[name] - true) / abs(true)
         rows.append(dict(base, parameter=name, true=true, fitted=fitted[name],
                          fitted_se=np.nan if se[name] is None else se[name], rel_error=err,
@@ -84,22 +92,28 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
 
 
 def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,), candidates=EFFECTS,
-             progress=print, n_cae: int = N_CAE) -> pd.DataFrame:
-    """The validation matrix: (``effects`` withheld + control) x strengths x seeds, each diagnosed with
-    ``candidates`` on campaigns of ``n_cae`` CAE runs; writes validation.csv and validation.md into ``out``."""
+             progress=print, n_cae: int = N_CAE, worlds=("first",)) -> pd.DataFrame:
+    """The validation matrix: ``worlds`` x (``effects`` withheld + control) x strengths x seeds, each
+    diagnosed with ``candidates`` on campaigns of ``n_cae`` CAE runs; writes validation.csv and
+    validation.md into ``out``.
+
+    Raises
+    ------
+    InputError
+        An unknown world.
+    """
+    for world in worlds:
+        if world not in WORLDS:
+            raise InputError(f"unknown world {world!r}: expected one of {', '.join(WORLDS)}", field="worlds")
     say = progress or (lambda line: None)
     rows = []
     with tempfile.TemporaryDirectory(prefix="crashfuse-validate-") as tmp:
-        for strength in strengths:
-            for withheld in (*effects, "none"):
-                for seed in seeds:
-                    if withheld == "none" and strength != strengths[0]:
-                        continue  # the control withholds nothing: its strength changes nothing
-                    folder = Path(tmp) / f"{withheld}-{strength}-{seed}"
-                    rows += validate_one(withheld, strength, seed, folder, candidates, n_cae=n_cae)
-                    last = rows[-1]
-                    say(f"validate {withheld} {strength} seed {seed}: verdict {last['verdict']}, "
-                        f"error {last['rel_error']:.2f}, {last['seconds']:.0f} s")
+        for world, strength, withheld, seed in _campaigns(worlds, effects, strengths, seeds):
+            folder = Path(tmp) / f"{world}-{withheld}-{strength}-{seed}"
+            rows += validate_one(withheld, strength, seed, folder, candidates, n_cae=n_cae, world=world)
+            last = rows[-1]
+            say(f"validate {world} {withheld} {strength} seed {seed}: verdict {last['verdict']}, "
+                f"error {last['rel_error']:.2f}, {last['seconds']:.0f} s")
     table = pd.DataFrame(rows, columns=list(COLUMNS))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -109,16 +123,28 @@ def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,)
     return table
 
 
+def _campaigns(worlds, effects, strengths, seeds):
+    """(world, strength, withheld, seed) of every campaign; the control withholds nothing, so it
+    runs at the first strength only."""
+    for world in worlds:
+        for strength in strengths:
+            for withheld in (*effects, "none"):
+                for seed in seeds:
+                    if withheld != "none" or strength == strengths[0]:
+                        yield world, strength, withheld, seed
+
+
 def validation_markdown(table: pd.DataFrame) -> str:
-    """Confusion table (withheld x first chosen) and the parameter errors."""
-    confusion = pd.crosstab(table.drop_duplicates(["withheld", "strength", "seed"])["withheld"],
-                            table.drop_duplicates(["withheld", "strength", "seed"])["first"])
-    lines = ["# Withheld-effect validation", "", "Rows: effect withheld from the CAE; columns: first effect chosen.",
-             "", confusion.to_markdown() if hasattr(confusion, "to_markdown") else confusion.to_string(), "",
-             "| withheld | strength | seed | verdict | parameter | true | fitted (jackknife se) | error | ok | "
-             "held-out MSE ratio | ISO 0-60 CAE -> +effects |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    """Confusion table per world (withheld x first chosen) and the parameter errors."""
+    lines = ["# Withheld-effect validation", "", "Rows: effect withheld from the CAE; columns: first effect chosen.", ""]
+    for world, part in table.drop_duplicates(["world", "withheld", "strength", "seed"]).groupby("world", sort=False):
+        confusion = pd.crosstab(part["withheld"], part["first"])
+        lines += [f"World `{world}`:", "",
+                  confusion.to_markdown() if hasattr(confusion, "to_markdown") else confusion.to_string(), ""]
+    lines += ["| world | withheld | strength | seed | verdict | parameter | true | fitted (jackknife se) | error | ok | "
+              "held-out MSE ratio | ISO 0-60 CAE -> +effects |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in table.itertuples():
-        lines.append(f"| {r.withheld} | {r.strength} | {r.seed} | {r.verdict} | {r.parameter} | {r.true:.4g} | "
-                     f"{r.fitted:.4g} ({r.fitted_se:.2g}) | {r.rel_error:.2f} | {r.within_tolerance} | "
+        lines.append(f"| {r.world} | {r.withheld} | {r.strength} | {r.seed} | {r.verdict} | {r.parameter} | "
+                     f"{r.true:.4g} | {r.fitted:.4g} ({r.fitted_se:.2g}) | {r.rel_error:.2f} | {r.within_tolerance} | "
                      f"{r.heldout_mse_ratio:.3f} | {r.iso_0_60_cae:.3f} -> {r.iso_0_60_effects:.3f} |")
     return "\n".join(lines) + "\n"
