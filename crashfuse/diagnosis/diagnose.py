@@ -30,8 +30,8 @@ import pandas as pd
 
 from crashfuse.catalogue import EFFECTS, V_REF, check_effect
 from crashfuse.gp.threads import one_blas_thread
-from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
-                                            test_case)
+from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, predict,
+                                         test_case, warm_start)
 from crashfuse.method.laws import headline
 from crashfuse.errors import InputError
 from crashfuse.diagnosis.evidence import ALPHA, MOVE, Evidence, judge
@@ -183,7 +183,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, say):
             break
         preds = {}
         for e in remaining:
-            fits = fit_folds(case, (*chosen, e), sets, start=_start(case, current, e))
+            fits = fit_folds(case, (*chosen, e), sets, start=warm_start(case, current, e))
             preds[e], mse = _heldout(case, fits)
             change = _rms(case, preds[e] - ref_pred)
             ev = judge(reference, mse, change, test_rms, groups=_groups(case, fits, e), **rule)
@@ -256,14 +256,6 @@ def _rms(case: TestCase, decel: np.ndarray) -> np.ndarray:
 
 def _rms_g(mse: np.ndarray) -> float:
     return float(np.sqrt(mse.mean()) / G0)
-
-
-def _start(case, current: FoldFits, effect: str):
-    """The chosen effects' fitted values plus the new effect's first starting point, per training set."""
-    new = [p.start[0] for p in parameters_to_fit(case, (effect,))]
-    if current.theta.shape[1] == 0:
-        return None
-    return np.hstack([current.theta, np.tile(new, (current.theta.shape[0], 1))])
 
 
 def _shrink(campaign, case, preds, fits, k, inputs, n_samples, random_state, surrogate, residual, say):
