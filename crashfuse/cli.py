@@ -155,7 +155,16 @@ def _fit(args) -> int:
     gps = {b: 0 if est is None else len(est.gps_) for b, est in model.bias_.items()}
     print(f"wrote {args.out}: K={args.k} {args.inputs} inputs, {len(model.training_tests)} training tests, "
           f"GPs per branch {gps}, campaign {model.campaign_hash[:12]}")
+    if model.physics is not None:
+        print(_physics_line(model.physics))
     return 0
+
+
+def _physics_line(physics) -> str:
+    """The hybrid's fitted laws in one line (parameters SI), with any fallback it took."""
+    laws = ", ".join(f"{name}={value:.4g}" for name, value in physics.theta.items())
+    notes = "".join(f"; {note}" for note in physics.notes)
+    return f"effect laws: {' + '.join(physics.effects) or 'none'} ({laws or 'nothing fitted'}){notes}"
 
 
 def _predict(args) -> int:
@@ -176,7 +185,10 @@ def _predict(args) -> int:
     if args.json:
         _print_json({"metrics": pred.metrics, "extrapolation": pred.extrapolation, "n_samples": pred.n_samples,
                      "campaign_hash": model.campaign_hash,
-                     "settings": {**model.config.as_dict(), "holdout": model.holdout}})
+                     "settings": {**model.config.as_dict(), "holdout": model.holdout},
+                     "effect_laws": None if model.physics is None else
+                     {"effects": list(model.physics.effects), "parameters_si": model.physics.theta,
+                      "notes": model.physics.notes}})
     return 0
 
 

@@ -180,3 +180,15 @@ def test_a_powertrain_arrest_no_training_test_reached_is_switched_off(worlds):
     notes = _switch_off_unreached(damped, train, theta)
     assert theta[f"powertrain.gap[{far}]"] == UNREACHED_GAP and len(notes) == 1 and far in notes[0]
     assert theta[f"powertrain.gap[{near}]"] == pytest.approx(near_reach - 0.05)
+
+
+def test_fit_reports_the_laws_and_their_fallbacks():
+    from crashfuse.cli import _physics_line
+    from crashfuse.method.hybrid import PhysicsFirst
+
+    physics = PhysicsFirst(("powertrain",), ["T01"], {"powertrain.gap[A]": 0.5, "powertrain.f_mount": 5e4}, ("A",),
+                           1.0, np.zeros((2, 4)), True, 1.0, {}, ["powertrain law off for B"])
+    line = _physics_line(physics)
+    assert "powertrain (powertrain.gap[A]=0.5, powertrain.f_mount=5e+04)" in line and "law off for B" in line
+    empty = dataclasses.replace(physics, effects=(), theta={}, notes=[])
+    assert _physics_line(empty) == "effect laws: none (nothing fitted)"
