@@ -102,8 +102,8 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
     mask = np.array([time <= p.time[-1] + 1e-12 for p in pulses])
     s_hi = S_HI_FACTOR * max(max(c.s[-1], c.s_max) for c in curves)
     labels = [powertrain_label(campaign, t) for t in campaign.tests]
-    faster = ([faster_curve(surrogate, p.v0, p.front_weight, p.rear_weight, p.meta.get("powertrain"), p.meta.get("drive"))
-               for p in pulses] if rate_aware else None)
+    faster = ([faster_curve(surrogate, p.v0, p.front_weight, p.rear_weight, p.meta.get("powertrain"),
+                            p.meta.get("drive")) for p in pulses] if rate_aware else None)
     force_rate = functools.partial(crush_force_rate, [campaign.pulses[r] for r in campaign.cae]) if rate_aware else None
     plant = curve_plant(curves, [p.mass for p in pulses], labels, s_hi, faster, force_rate)
     return TestCase(list(campaign.tests), plant, target, mask, time, sources, rate_aware)

@@ -70,7 +70,7 @@ class PhysicsFirst:
         ``auto`` only: the inner leave-one-test-out squared error of every effect set tried
         (``+``-joined names, ``none`` for the CAE alone), (m/s^2)^2.
     notes : list of str
-        Fallbacks taken (rate laws left out of ``auto``).
+        Fallbacks taken (rate laws left out of ``auto``, powertrain laws switched off).
     """
 
     effects: tuple
@@ -189,7 +189,8 @@ def fit_physics(campaign: Campaign, train, effects, surrogate: CAESurrogate, min
     notes += _switch_off_unreached(campaign, train, theta)
     plant = case.plant  # its rate sensitivity as tabulated for the fit (force per crush speed = dadv x mass)
     rate = np.array([plant.dadv[0], plant.dadv2[0]]) * plant.mass[0]
-    return PhysicsFirst(tuple(effects), sorted(train), theta, plant.labels, plant.s_hi, rate, case.rate_aware, float(fits.cost[-1]), inner, notes)
+    return PhysicsFirst(tuple(effects), sorted(train), theta, plant.labels, plant.s_hi, rate, case.rate_aware,
+                        float(fits.cost[-1]), inner, notes)
 
 
 def _switch_off_unreached(campaign: Campaign, train, theta: dict) -> list:
@@ -200,7 +201,8 @@ def _switch_off_unreached(campaign: Campaign, train, theta: dict) -> list:
     notes = []
     for name in [n for n in theta if n.startswith("powertrain.gap[")]:
         label = name[len("powertrain.gap["):-1]
-        crush = [displacement_branches(campaign.pulses[t]).s_max for t in train if powertrain_label(campaign, t) == label]
+        crush = [displacement_branches(campaign.pulses[t]).s_max for t in train
+                 if powertrain_label(campaign, t) == label]
         if crush and theta[name] >= max(crush):
             notes.append(f"powertrain law off for {label}: no training test of it crushed to its fitted gap "
                          f"{theta[name]:.3f} m (largest crush {max(crush):.3f} m)")

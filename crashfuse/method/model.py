@@ -191,9 +191,10 @@ class FittedModel:
     def _with_effects(self, curve: CAECurve, cond: Condition) -> CAECurve:
         if self.physics is None or not self.physics.effects:
             return curve
-        return self.physics.curve(curve, cond.front_weight + cond.rear_weight, cond.powertrain,
-                                  faster_curve(self.surrogate, cond.v0, cond.front_weight, cond.rear_weight,
-                                                             cond.powertrain, cond.drive), cond.front_weight, cond.rear_weight)
+        faster = faster_curve(self.surrogate, cond.v0, cond.front_weight, cond.rear_weight, cond.powertrain,
+                              cond.drive)
+        return self.physics.curve(curve, cond.front_weight + cond.rear_weight, cond.powertrain, faster,
+                                  cond.front_weight, cond.rear_weight)
 
     def _surrogate_curve(self, cond: Condition, check: bool) -> CAECurve:
         lo, hi = self.ranges["cae_condition"]

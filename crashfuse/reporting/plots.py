@@ -243,7 +243,8 @@ def plot_evaluation(result, out: str | os.PathLike, campaign) -> list[Path]:
     for (inputs, model, test_id), frame in result.predictions.items():
         test = campaign.pulses[test_id].after_contact()
         path = fold_folder(out, inputs, model, test_id) / f"{test_id}.png"
-        paths.append(save_png(fold_figure(test, frame, f"{test_id}: {inputs} inputs, K = {model[1:]}".replace("+", " + ", 1)), path))
+        title = f"{test_id}: {inputs} inputs, K = {model[1:]}".replace("+", " + ", 1)  # K1+auto: K = 1 + auto
+        paths.append(save_png(fold_figure(test, frame, title), path))
     return paths
 
 
