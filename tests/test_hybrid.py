@@ -131,7 +131,7 @@ def test_unknown_effects_are_refused_naming_the_setting(effects):
     assert err.value.field == "effects"
 
 
-def test_the_command_line_names_the_flag(worlds, capsys):
+def test_the_command_line_names_the_flag(capsys):
     assert main(["fit", "campaign-not-needed", "--k", "1", "--effects", "friction", "--out", "m.cfmodel"]) != 0
     assert "--effects" in capsys.readouterr().err
 
