@@ -216,7 +216,7 @@ def _evaluate(args) -> int:
         surrogate.check_campaign(campaign, args.surrogate)
     result = evaluate(campaign, ks=args.k, inputs=args.inputs, out=args.out,
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
-                      holdout=args.holdout, band=args.band, **_method_settings(args))
+                      holdout=args.holdout, band=args.band, auto=args.auto, **_method_settings(args))
     plot_evaluation(result, args.out, campaign)
     summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
     print(summary.mean().round(3).to_string())
@@ -513,6 +513,9 @@ def _add_evaluate(sub) -> None:
     s.add_argument("--jobs", type=_positive, default=2, help="worker processes (default 2)")
     s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
                    help="run only the fold holding out this test (repeatable; default every test)")
+    s.add_argument("--auto", action="store_true",
+                   help="also the auto model: per fold, the input mode and K of the smallest inner error on the "
+                        "training tests (rows labelled auto)")
     _add_surrogate_option(s)
     _add_method_options(s)
     _add_band_option(s)

@@ -42,7 +42,7 @@ def surrogate(campaign):
 def result(campaign, surrogate, tmp_path_factory):
     out = tmp_path_factory.mktemp("evaluation")
     return ev.evaluate(campaign, ks=[1, 2], inputs=["paper", "state"], out=out, n_samples=40, n_jobs=2,
-                       surrogate=surrogate, progress=None, **FAST), out
+                       surrogate=surrogate, progress=None, auto=True, **FAST), out
 
 
 def test_no_fold_sees_its_held_out_test(campaign, surrogate, monkeypatch):
@@ -85,10 +85,10 @@ def test_iso_table_contract(result):
     iso = pd.read_csv(out / "iso_table.csv", dtype={"window_ms": str})
     assert list(iso.columns) == ["test_id", "inputs", "model", "window_ms", "overall", "corridor", "phase",
                                  "magnitude", "slope"]
-    assert set(iso["model"]) == {"CAE", "K1", "K2"} and set(iso["inputs"]) == {"paper", "state"}
+    assert set(iso["model"]) == {"CAE", "K1", "K2", "auto"} and set(iso["inputs"]) == {"paper", "state", "auto"}
     assert set(iso["window_ms"]) == {"0-20", "0-40", "0-60"}
-    # one row per test x inputs x model x window
-    assert len(iso) == len(KEEP) * 2 * 3 * 3
+    # one row per test x inputs x model x window; the auto model's inputs hold CAE and auto
+    assert len(iso) == len(KEEP) * (2 * 3 + 2) * 3
     assert not iso.duplicated(["test_id", "inputs", "model", "window_ms"]).any()
     assert iso[["overall", "corridor", "phase", "magnitude", "slope"]].apply(lambda c: c.between(0, 1)).all().all()
 
@@ -114,7 +114,7 @@ def test_fold_rows_rate_the_written_prediction(campaign, result):
 def test_coverage_is_the_fraction_inside_the_band(campaign, result):
     res, out = result
     cov = pd.read_csv(out / "coverage.csv")
-    assert len(cov) == len(KEEP) * 2 * 2 and cov["coverage"].between(0, 1).all()
+    assert len(cov) == len(KEEP) * (2 * 2 + 1) and cov["coverage"].between(0, 1).all()
     assert (cov.loc[cov.model == "K1", "cluster_switches"] == 0).all()  # one GP: nothing to switch
     frame = pd.read_csv(out / "paper" / "K1" / "T02" / "T02_prediction.csv")
     test = campaign.pulses["T02"]
@@ -169,6 +169,24 @@ def test_fold_json_matches_the_table(result):
         assert record.iso[row.window_ms]["overall"] == pytest.approx(row.overall, abs=1e-12)
     assert record.k == 1 and record.campaign["hash"] == res.records[("state", "K1", "T08")].campaign["hash"]
     assert (out / "state" / "K1" / "T08" / record.prediction).exists()
+
+
+def test_auto_copies_the_candidate_with_the_smallest_inner_error(result):
+    """Per held-out test, the auto rows, fold JSON and prediction are the chosen candidate's, named in the JSON."""
+    res, out = result
+    cov, iso = res.coverage, res.iso_table
+    for test_id in KEEP:
+        candidates = cov[(cov.test_id == test_id) & (cov.model != "auto")]
+        assert (candidates.inner_error > 0).all() and np.isfinite(candidates.inner_error).any()
+        best = candidates.loc[candidates.inner_error.idxmin()]
+        record = read_fold_json(out / "auto" / "auto" / test_id / f"{test_id}.fold.json")
+        assert record.model == "auto" and record.settings["chosen"] == f"{best.inputs} {best.model}"
+        assert record.settings["candidates"].count(":") == len(candidates)
+        chosen = iso[(iso.test_id == test_id) & (iso.inputs == best.inputs) & (iso.model == best.model)]
+        auto = iso[(iso.test_id == test_id) & (iso.inputs == "auto") & (iso.model == "auto")]
+        np.testing.assert_array_equal(auto.overall.to_numpy(), chosen.overall.to_numpy())
+        pd.testing.assert_frame_equal(res.predictions["auto", "auto", test_id],
+                                      res.predictions[best.inputs, best.model, test_id])
 
 
 def test_cli_prepare_then_one_fold(campaign, tmp_path):

@@ -102,7 +102,7 @@ def test_write_tables_writes_every_mode_atomically(tmp_path):
 
 @pytest.mark.parametrize("edit, field, expected", [
     (lambda f: f.drop(columns="slope"), "slope", "missing ['slope']"),
-    (lambda f: f.assign(inputs="physics"), "inputs", "one of ['paper', 'state']"),
+    (lambda f: f.assign(inputs="physics"), "inputs", "one of ['paper', 'state', 'auto']"),
     (lambda f: f.assign(model=f["model"].replace("K2", "GP2")), "model", "'GP2'"),
     (lambda f: f.assign(model=f["model"].replace("K2", "K0")), "model", "'K0'"),
     (lambda f: f.assign(window_ms=f["window_ms"].replace("0-40", "40-0")), "window_ms", "'40-0'"),

@@ -3,19 +3,24 @@
 One row per held-out test x input mode x model x window: the keys ``test_id, inputs, model,
 window_ms``, then the five ISO/TS 18571 scores. ``model`` is ``CAE`` (the baseline: the test's
 companion CAE run) or ``K<n>`` (the bias model with n clusters), ``K<n>+<effects>`` for the
-physics-first hybrid (``K1+auto``, ``K2+strain_rate+powertrain``); ``window_ms`` is ``<start>-<end>``
-in whole ms. :mod:`crashfuse.reporting.tables` reads and tabulates it.
+physics-first hybrid (``K1+auto``, ``K2+strain_rate+powertrain``), or ``auto`` (per fold the candidate
+with the smallest inner error, :mod:`crashfuse.method.selection`; its rows have ``inputs`` = ``auto`` too,
+beside CAE rows of their own); ``window_ms`` is ``<start>-<end>`` in whole ms. :mod:`crashfuse.reporting.tables` reads and tabulates it.
 """
 
 from __future__ import annotations
 
 import re
 
+from crashfuse.method.projection import INPUTS
+
 ISO_TABLE = "iso_table.csv"
 KEYS = ("test_id", "inputs", "model", "window_ms")
 SCORES = ("overall", "corridor", "phase", "magnitude", "slope")
 COLUMNS = (*KEYS, *SCORES)
 BASELINE = "CAE"
+AUTO = "auto"  # the model (and input mode) label of the auto model's rows
+ROW_INPUTS = (*INPUTS, AUTO)  # the ``inputs`` labels of the table
 WINDOWS = ("0-20", "0-40", "0-60")
 _MODEL = re.compile(r"K([1-9][0-9]*)(\+[a-z_]+(?:\+[a-z_]+)*)?")
 _WINDOW = re.compile(r"([0-9]+)-([0-9]+)")
@@ -53,16 +58,23 @@ def window_key(label: str) -> str:
 
 
 def model_order(model: str) -> tuple[int, int, str]:
-    """Sort key of a ``model`` label: CAE first, then K ascending, each K's hybrids after it."""
+    """Sort key of a ``model`` label: CAE first, then K ascending, each K's hybrids after it, auto last."""
     if model == BASELINE:
         return 0, 0, ""
+    if model == AUTO:
+        return 2, 0, ""
     m = _MODEL.fullmatch(model)
     return 1, int(m[1]), m[2] or ""
 
 
 def is_model_label(label: str) -> bool:
-    """Whether ``label`` is a ``model`` label: ``CAE`` or ``K<n>`` with n >= 1, optionally ``+<effects>``."""
-    return label == BASELINE or _MODEL.fullmatch(label) is not None
+    """Whether ``label`` is a ``model`` label: ``CAE``, ``auto`` or ``K<n>`` with n >= 1, optionally ``+<effects>``."""
+    return label in (BASELINE, AUTO) or _MODEL.fullmatch(label) is not None
+
+
+def model_tag(model: str) -> str:
+    """The short form of a model label in run names and tags: ``K2+auto`` -> ``2+auto``, ``auto`` as is."""
+    return model[1:] if _MODEL.fullmatch(model) else model
 
 
 def is_window(label: str) -> bool:

@@ -28,7 +28,7 @@ import pandas as pd
 from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import (BASELINE, COLUMNS, SCORES, WINDOWS, effects_label, model_label,
+from crashfuse.evaluation.iso_table import (AUTO, BASELINE, COLUMNS, SCORES, WINDOWS, effects_label, model_label,
                                            window_bounds)
 from crashfuse.evaluation.records import FoldRecord, fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
@@ -39,12 +39,13 @@ from crashfuse.method.hybrid import fit_physics
 from crashfuse.method.model import fit_model
 from crashfuse.method.projection import BRANCHES, INPUTS
 from crashfuse.method.rollout import predict
+from crashfuse.method.selection import choose, inner_error
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MS
 
 COVERAGE_WINDOW_MS = (0, 60)
 COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "coverage_latent", "n_points", "extrapolation",
-                    "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s"]
+                    "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s", "inner_error"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,7 +80,7 @@ class Evaluation:
 def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.PathLike | None = None,
              n_samples: int = 1000, random_state: int = 0, n_jobs: int = 2, surrogate: CAESurrogate | None = None,
              holdout=None, progress: Callable[[str], None] | None = print, band: str = "test",
-             **settings) -> Evaluation:
+             auto: bool = False, **settings) -> Evaluation:
     """Every leave-one-test-out fold for each K in ``ks`` and each input mode.
 
     Parameters
@@ -108,6 +109,10 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     band : {"test", "latent"}
         The reported band (:func:`crashfuse.method.rollout.predict`) that ``coverage`` measures; the latent
         band's coverage is recorded either way.
+    auto : bool
+        Also the ``auto`` model: per held-out test, the fold (input mode, K) whose bias model has the
+        smallest inner error on its training tests (:func:`crashfuse.method.selection.inner_error`);
+        its rows are labelled ``auto`` for both ``inputs`` and ``model``, its fold JSON names the choice.
     **settings
         Further :class:`crashfuse.method.config.MethodConfig` settings of every fold (``assignment``,
         ``extra_inputs``, ``n_grid``, ``use_companion``, ``target``, ``weights``, ``velocity``, ``trend``,
@@ -129,13 +134,17 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     folds = [(configs[mode, k], t, physics[t]) for mode in inputs for k in ks for t in tests]
     say(f"evaluate: {len(folds)} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
     results = []
-    for i, res in enumerate(_run_folds(campaign, surrogate, folds, n_jobs, (n_samples, band)), 1):
+    for i, res in enumerate(_run_folds(campaign, surrogate, folds, n_jobs, (n_samples, band, auto)), 1):
         results.append(res)
         cov = res["coverage"]
         say(f"[{i}/{len(folds)}] {cov['inputs']} {cov['model']} {cov['test_id']}: "
             f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
             f"fit {cov['fit_s']:.1f} s")
-    cae_rows = [row for t in tests for mode in inputs for row in _cae_rows(campaign, surrogate, t, mode)]
+    if auto:
+        results += [_auto_fold([r for r in results if r["coverage"]["test_id"] == t]) for t in tests]
+        say("auto: " + ", ".join(f"{r['coverage']['test_id']} {r['record'].settings['chosen']}" for r in results[-len(tests):]))
+    modes = [*inputs, AUTO] if auto else inputs
+    cae_rows = [row for t in tests for mode in modes for row in _cae_rows(campaign, surrogate, t, mode)]
     iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=list(COLUMNS))
     coverage = pd.DataFrame([res["coverage"] for res in results], columns=COVERAGE_COLUMNS)
     keys = [(r["coverage"]["inputs"], r["coverage"]["model"], r["coverage"]["test_id"]) for r in results]
@@ -231,13 +240,14 @@ def _load_shared(path):
         return pickle.load(fh)
 
 
-def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band) -> dict:
+def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, inner=False) -> dict:
     """Fit ``config`` without ``test_id`` (with the hybrid's ``physics`` fitted without it, if any),
-    predict its condition, rate and measure the band coverage."""
+    predict its condition, rate and measure the band coverage; with ``inner``, the fit's inner error too."""
     t0 = time.perf_counter()
     mode, k, random_state = config.inputs, config.k, config.random_state
     model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics)
     t1 = time.perf_counter()
+    inner_mse = inner_error(model, campaign) if inner else None
     test = campaign.pulses[test_id].after_contact()
     pred = predict(model, test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
                    test.meta.get("drive"), n_samples=n_samples, random_state=random_state,
@@ -252,7 +262,8 @@ def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples
     coverage = dict(test_id=test_id, inputs=mode, model=name, coverage=cov, coverage_latent=cov_latent,
                     n_points=n, extrapolation=pred.extrapolation["any"],
                     n_gps_loading=_n_gps(model, "loading"), n_gps_unloading=_n_gps(model, "unloading"),
-                    cluster_switches=cluster_switches(model, pred), fit_s=t1 - t0, predict_s=t2 - t1)
+                    cluster_switches=cluster_switches(model, pred), fit_s=t1 - t0, predict_s=t2 - t1,
+                    inner_error=inner_mse)
     record = FoldRecord(
         test_id=test_id, inputs=mode, k=int(k), seed=int(random_state),
         campaign={"name": campaign.root.name if campaign.root else "campaign", "hash": model.campaign_hash},
@@ -265,10 +276,28 @@ def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples
                  "cluster_switches": float(coverage["cluster_switches"]),
                  "n_gps_loading": float(coverage["n_gps_loading"]),
                  "n_gps_unloading": float(coverage["n_gps_unloading"]),
-                 "extrapolation": float(pred.extrapolation["any"])},
+                 "extrapolation": float(pred.extrapolation["any"]),
+                 **({"inner_error_mps2_sq": inner_mse} if inner_mse is not None and np.isfinite(inner_mse) else {})},
         figures=[f"{test_id}.png"], prediction=f"{test_id}_prediction.csv",
     )
     return {"iso": iso, "coverage": coverage, "frame": frame, "record": record}
+
+
+def _auto_fold(candidates: list) -> dict:
+    """The ``auto`` fold of one held-out test: a copy of its candidate fold with the smallest inner error.
+
+    The fold JSON keeps the chosen fold's K, settings and metrics and adds ``chosen`` (``<inputs>
+    <model>``) and ``candidates`` (every candidate's inner error, (m/s^2)^2, as text).
+    """
+    pick = choose([c["coverage"]["inner_error"] for c in candidates])
+    won = candidates[pick.index]
+    names = [f"{c['coverage']['inputs']} {c['coverage']['model']}" for c in candidates]
+    relabel = {"inputs": AUTO, "model": AUTO}
+    record = dataclasses.replace(won["record"], inputs=AUTO, settings={
+        **won["record"].settings, "chosen": names[pick.index],
+        "candidates": "; ".join(f"{n}: {e:.6g}" for n, e in zip(names, pick.scores))})
+    return {"iso": [{**row, **relabel} for row in won["iso"]], "coverage": {**won["coverage"], **relabel},
+            "frame": won["frame"], "record": record}
 
 
 def fold_settings(config: MethodConfig, n_samples: int) -> dict:

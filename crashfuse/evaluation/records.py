@@ -14,9 +14,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import SCORES, is_window, model_label, window_key
+from crashfuse.evaluation.iso_table import AUTO, ROW_INPUTS, SCORES, is_window, model_label, window_key
 from crashfuse.io.atomic import write_text
-from crashfuse.method.projection import INPUTS
 
 FOLD_SCHEMA = "crashfuse.fold/1"
 FOLD_SUFFIX = ".fold.json"
@@ -31,8 +30,9 @@ class FoldRecord:
     ----------
     test_id : str
         The held-out test.
-    inputs : {"paper", "state"}
-        The GP input mode.
+    inputs : {"paper", "state", "auto"}
+        The GP input mode; ``auto`` for the auto model's fold (a copy of the candidate fold it chose,
+        named in ``settings['chosen']``).
     k : int
         Number of GMM clusters (GP models), >= 1.
     seed : int
@@ -68,6 +68,8 @@ class FoldRecord:
     @property
     def model(self) -> str:
         """The ``model`` label of this fold in ``iso_table.csv``."""
+        if self.inputs == AUTO:
+            return AUTO
         return model_label(self.k, self.settings.get("effects", "none"))
 
     def iso_metrics(self) -> dict[str, float]:
@@ -114,8 +116,8 @@ def _validate_fold(doc: Any, path: Path) -> None:
             fail(name, "expected this key")
     if not _is_text(doc["test_id"]):
         fail("test_id", f"expected a non-empty string, got {doc['test_id']!r}")
-    if doc["inputs"] not in INPUTS:
-        fail("inputs", f"expected one of {list(INPUTS)}, got {doc['inputs']!r}")
+    if doc["inputs"] not in ROW_INPUTS:
+        fail("inputs", f"expected one of {list(ROW_INPUTS)}, got {doc['inputs']!r}")
     for name, low in (("k", 1), ("seed", 0)):
         if not _is_int(doc[name]) or doc[name] < low:
             fail(name, f"expected an integer >= {low}, got {doc[name]!r}")

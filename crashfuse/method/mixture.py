@@ -365,6 +365,42 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
             out[rows] = res
         return out
 
+    def held_out_residuals(self, X, y, groups):
+        """Leave-one-test-out residuals of the whole model at fixed hyperparameters (y units).
+
+        As :meth:`grouped_residuals`, but with a pooled GP its cluster GPs count too: each cluster GP
+        that speaks (``residual_var_ > 0``) predicts a left-out test's pooled residual from its other
+        tests, and that prediction is taken off the pooled GP's held-out residual. The cluster GPs'
+        targets are the pooled GP's in-sample residuals (first order: the pooled GP refitted
+        without the test would move them a little).
+
+        Parameters
+        ----------
+        X : array_like, shape (n, d)
+        y : array_like, shape (n,)
+        groups : array_like, shape (n,)
+
+        Returns
+        -------
+        ndarray, shape (n,) or None
+            None where a GP's rows come from a single test or its matrices are singular.
+        """
+        e = self.grouped_residuals(X, y, groups)
+        if e is None or self.pooled_gp_ is None:
+            return e
+        X, groups = check_array(X), np.asarray(groups)
+        r = np.asarray(y, dtype=float) - self.pooled_gp_.predict(X)
+        pick = np.argmax(self.predict_responsibilities(X), axis=1)
+        for g, gp in enumerate(self.gps_):
+            rows = pick == g
+            if self.residual_var_[g] <= 0 or len(set(groups[rows])) < 2:
+                continue  # a cluster GP that does not speak predicts 0
+            e_g = gp.grouped_residuals(X[rows], r[rows], groups[rows])
+            if e_g is None:
+                return None
+            e[rows] -= r[rows] - e_g
+        return e
+
     def scatter_std(self, X):
         """Test-to-test scatter std at ``X`` (y units): what a new test adds to the latent band.
 

@@ -111,12 +111,49 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         if self.onset_gp_ is None:
             return np.zeros(len(X))
         t = np.asarray(self.time(X), dtype=float)
-        fade = np.cos(0.5 * np.pi * np.clip((t - self.window[0]) / (self.window[1] - self.window[0]), 0.0, 1.0)) ** 2
+        fade = self._fade(t)
         out = np.zeros(len(X))
         on = fade > 0
         if on.any():
             out[on] = fade[on] * self.onset_gp_.predict(t[on, None])
         return out
+
+    def _fade(self, t):
+        """Weight of the correction at time since contact ``t`` (s): 1 up to ``window[0]``, cos^2 to 0 at ``window[1]``."""
+        return np.cos(0.5 * np.pi * np.clip((t - self.window[0]) / (self.window[1] - self.window[0]), 0.0, 1.0)) ** 2
+
+    def held_out_residuals(self, X, y, groups):
+        """Leave-one-test-out residuals of base model and correction at fixed hyperparameters (y units).
+
+        The base model's (:meth:`GMMGPBias.held_out_residuals`); on the early rows the correction GP,
+        conditioned on the other tests' base residuals, predicts a left-out test's, faded as in
+        :meth:`correction`.
+
+        Parameters
+        ----------
+        X : array_like, shape (n, d)
+        y : array_like, shape (n,)
+        groups : array_like, shape (n,)
+
+        Returns
+        -------
+        ndarray, shape (n,) or None
+            None where the base model's residuals are (a GP's rows from one test, a singular matrix).
+        """
+        check_is_fitted(self)
+        X, groups = check_array(X), np.asarray(groups)
+        e = self.base_.held_out_residuals(X, y, groups)
+        if e is None or self.onset_gp_ is None:
+            return e
+        t = np.asarray(self.time(X), dtype=float)
+        early = t < self.window[1]
+        if len(np.unique(groups[early])) < 2:
+            return e
+        e_o = self.onset_gp_.grouped_residuals(t[early, None], e[early], groups[early])
+        if e_o is None:
+            return None
+        e[early] -= self._fade(t[early]) * (e[early] - e_o)
+        return e
 
     def predict(self, X, return_std=False):
         """Base prediction plus the correction; ``std`` (if asked) is the base model's."""

@@ -134,12 +134,15 @@ class BranchData:
         ``x_m`` (s on loading, u on unloading), ``v_mps`` (``state`` mode only), ``v0_mps``,
         ``front_weight_kg``, ``rear_weight_kg``, then one-hot ``powertrain=<level>`` /
         ``drive=<level>`` columns with ``extra_inputs``.
+    scale : ndarray, shape (n,)
+        m/s^2 per unit of ``y``: 1 (``absolute``), :func:`bias_scale` of ``a_cae`` (``relative``).
     """
 
     X: np.ndarray
     y: np.ndarray
     groups: np.ndarray
     columns: tuple[str, ...]
+    scale: np.ndarray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,10 +235,10 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
         test = _test_pulse(campaign, test_id)
         curve = cae_curve(campaign, test, surrogate, use_companion, cae_curves or {})
         for name, rows in _test_rows(test, curve, n_grid, missing, target).items():
-            x, v, bias = rows
+            x, v, bias, scale = rows
             X = bias_inputs(columns, x, v, test.v0, test.front_weight, test.rear_weight,
                             test.meta.get("powertrain"), test.meta.get("drive"))
-            parts[name].append((X, bias, np.full(x.size, test_id, dtype=object)))
+            parts[name].append((X, bias, np.full(x.size, test_id, dtype=object), scale))
     data = {b: _stack(parts[b], columns) for b in BRANCHES}
     return BiasData(data["loading"], data["unloading"], inputs, categories, missing, target)
 
@@ -380,7 +383,7 @@ def cae_curve(campaign: Campaign, test: Pulse, surrogate, use_companion: bool = 
 
 
 def _test_rows(test: Pulse, curve: CAECurve, n_grid, missing: dict, target: str = "absolute") -> dict[str, tuple]:
-    """Projected and thinned (x, v, y) per branch for one test; records branches with no data."""
+    """Projected and thinned (x, v, y, scale) per branch for one test; records branches with no data."""
     br = displacement_branches(test)
     cae = {"loading": _Samples(curve.s, curve.a_loading)}
     if br.unloading is None:
@@ -396,9 +399,8 @@ def _test_rows(test: Pulse, curve: CAECurve, n_grid, missing: dict, target: str 
             missing[f"{test.run_id}/{name}"] = "the test and CAE branches do not overlap"
             continue
         x, v, bias = thin(*rows, n_grid)
-        if target == "relative":
-            bias = bias / bias_scale(np.interp(x, side.x, side.decel))
-        out[name] = (x, v, bias)
+        scale = bias_scale(np.interp(x, side.x, side.decel)) if target == "relative" else np.ones(x.size)
+        out[name] = (x, v, bias / scale, scale)
     return out
 
 
@@ -411,6 +413,6 @@ def _cae_unloading(curve: CAECurve, reach: float) -> _Samples:
 
 def _stack(parts: list, columns: tuple[str, ...]) -> BranchData:
     if not parts:
-        return BranchData(np.empty((0, len(columns))), np.empty(0), np.empty(0, dtype=object), columns)
-    X, y, g = (np.concatenate(p) for p in zip(*parts))
-    return BranchData(X, y, g, columns)
+        return BranchData(np.empty((0, len(columns))), np.empty(0), np.empty(0, dtype=object), columns, np.empty(0))
+    X, y, g, scale = (np.concatenate(p) for p in zip(*parts))
+    return BranchData(X, y, g, columns, scale)

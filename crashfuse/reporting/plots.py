@@ -22,11 +22,10 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import BASELINE, SCORES, model_order, window_bounds
+from crashfuse.evaluation.iso_table import AUTO, BASELINE, ROW_INPUTS, SCORES, model_order, model_tag, window_bounds
 from crashfuse.evaluation.records import fold_folder
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.tables import read_table
-from crashfuse.method.projection import INPUTS
 from crashfuse.reporting.tables import natural_key, read_iso_table, table2, table_file
 from crashfuse.signals.pulse import Pulse
 from crashfuse.units import G0, MM, MPH, MS
@@ -183,7 +182,7 @@ def iso_summary_figure(frame: pd.DataFrame, window: str = "0-60", score: str = "
         windows = sorted(frame["window_ms"].unique(), key=window_bounds)
         raise InputError(f"expected a window_ms label of the table {windows}, got {window!r}", table_file(frame),
                          "window")
-    modes = [m for m in INPUTS if (rows["inputs"] == m).any()]
+    modes = [m for m in ROW_INPUTS if (rows["inputs"] == m).any()]
     tests = sorted(rows["test_id"].unique(), key=natural_key)
     models = sorted(rows["model"].unique(), key=model_order)
     fig = _figure((max(6.4, 0.75 * len(tests) + 2.0), 2.8 * len(modes) + 0.4))
@@ -243,7 +242,9 @@ def plot_evaluation(result, out: str | os.PathLike, campaign) -> list[Path]:
     for (inputs, model, test_id), frame in result.predictions.items():
         test = campaign.pulses[test_id].after_contact()
         path = fold_folder(out, inputs, model, test_id) / f"{test_id}.png"
-        title = f"{test_id}: {inputs} inputs, K = {model[1:]}".replace("+", " + ", 1)  # K1+auto: K = 1 + auto
+        title = f"{test_id}: {inputs} inputs, K = {model_tag(model)}".replace("+", " + ", 1)  # K1+auto: K = 1 + auto
+        if model == AUTO:
+            title = f"{test_id}: auto, chose {result.records[inputs, model, test_id].settings['chosen']}"
         paths.append(save_png(fold_figure(test, frame, title), path))
     return paths
 

@@ -17,11 +17,10 @@ from pathlib import Path
 import pandas as pd
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import (COLUMNS, ISO_TABLE, KEYS, SCORES, is_model_label, is_window, model_order,
+from crashfuse.evaluation.iso_table import (COLUMNS, ISO_TABLE, KEYS, ROW_INPUTS, SCORES, is_model_label, is_window, model_order,
                                             window_bounds)
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.tables import read_table
-from crashfuse.method.projection import INPUTS
 
 _NATURAL = re.compile(r"([0-9]+)")
 _SOURCE = "source"  # frame.attrs key: the file a table was read from, to locate errors found later
@@ -85,8 +84,8 @@ def table_file(frame: pd.DataFrame) -> str | None:
 def _check_labels(frame: pd.DataFrame, path: Path) -> None:
     checks = {
         "test_id": (lambda v: v.strip() != "", "a non-empty test id"),
-        "inputs": (lambda v: v in INPUTS, f"one of {list(INPUTS)}"),
-        "model": (is_model_label, "'CAE' or 'K<n>' (n >= 1), optionally '+<effects>'"),
+        "inputs": (lambda v: v in ROW_INPUTS, f"one of {list(ROW_INPUTS)}"),
+        "model": (is_model_label, "'CAE', 'auto' or 'K<n>' (n >= 1), optionally '+<effects>'"),
         "window_ms": (is_window, "'<start>-<end>' in ms with start < end"),
     }
     for col, (ok, expected) in checks.items():
@@ -221,7 +220,7 @@ def summary(frame: pd.DataFrame) -> pd.DataFrame:
     out = grouped[list(SCORES)].mean()
     out.insert(0, "n_tests", grouped["test_id"].nunique())
     out = out.reset_index()
-    order = sorted(out.index, key=lambda i: (INPUTS.index(out.at[i, "inputs"]), model_order(out.at[i, "model"]),
+    order = sorted(out.index, key=lambda i: (ROW_INPUTS.index(out.at[i, "inputs"]), model_order(out.at[i, "model"]),
                                              window_bounds(out.at[i, "window_ms"])))
     return out.loc[order].reset_index(drop=True)
 
@@ -315,7 +314,7 @@ def write_tables(iso_table: str | os.PathLike, out_dir: str | os.PathLike, score
     frame = read_iso_table(iso_table)
     out_dir = Path(out_dir)
     texts = {}
-    for inputs in (m for m in INPUTS if (frame["inputs"] == m).any()):
+    for inputs in (m for m in ROW_INPUTS if (frame["inputs"] == m).any()):
         texts[f"table2_{inputs}.md"] = table2_markdown(frame, inputs, score)
         texts[f"table2_{inputs}.tex"] = table2_latex(frame, inputs, score)
     texts["summary.csv"] = summary(frame).to_csv(index=False, float_format="%.6f", lineterminator="\n")

@@ -28,7 +28,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, model_order, window_key
+from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, model_order, model_tag, window_key
 from crashfuse.evaluation.records import CONDITIONS, FOLD_SUFFIX, FoldRecord, read_fold_json
 from crashfuse.reporting.tables import read_iso_table
 
@@ -278,7 +278,7 @@ def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = No
     out = {"tracking_uri": uri, "experiment_id": exp_id, "experiment_name": name, "parents": {}, "folds": {}}
     iso_file = Path(results_dir) / ISO_TABLE
     for (inputs, model), group in _groups(folds).items():
-        k = model[1:]  # the K tag: the cluster count, and the hybrid's effects after it
+        k = model_tag(model)  # the K tag: the cluster count, the hybrid's effects after it; or auto
         key = (PARENT, inputs, str(k), "")
         tags = {**common, **dict(zip(KEY_TAGS, key)), "mlflow.runName": f"{inputs} K={k}"}
         parent = _upsert(client, exp_id, existing.get(key, []), tags, _parent_params(group), _mean_metrics(group),
