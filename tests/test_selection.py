@@ -45,6 +45,14 @@ def test_a_cluster_holding_one_test_cannot_be_scored():
         choose([np.inf, np.inf])
 
 
+def test_a_more_complex_candidate_must_earn_its_place():
+    """Listed simplest first, a candidate replaces the choice only by removing MIN_GAIN of its error."""
+    assert choose([10.0, 9.5, 9.2]).index == 0  # small gains: the simplest stays
+    assert choose([10.0, 8.0, 7.5]).index == 1  # 20 % off K1; K3 only 6 % off K2
+    assert choose([10.0, 9.5, 8.5]).index == 2  # judged against the current choice, not its neighbour
+    assert choose([10.0, 9.5, 8.5], min_gain=0.0).index == 2 and choose([3.0, 2.0], min_gain=0.5).index == 0
+
+
 def test_pooled_cluster_gps_count_where_they_speak_only():
     """A pooled model's held-out residuals are the pooled GP's, less each speaking cluster GP's held-out prediction."""
     X, y, groups = _tests(n_tests=10, depends_on_c=False)

@@ -110,8 +110,9 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         The reported band (:func:`crashfuse.method.rollout.predict`) that ``coverage`` measures; the latent
         band's coverage is recorded either way.
     auto : bool
-        Also the ``auto`` model: per held-out test, the fold (input mode, K) whose bias model has the
-        smallest inner error on its training tests (:func:`crashfuse.method.selection.inner_error`);
+        Also the ``auto`` model: per held-out test, the fold (input mode, K) whose bias model predicts its
+        training tests best (:func:`crashfuse.method.selection.inner_error`, the simplest unless a more
+        complex candidate removes 10 % of the error: :func:`crashfuse.method.selection.choose`);
         its rows are labelled ``auto`` for both ``inputs`` and ``model``, its fold JSON names the choice.
     **settings
         Further :class:`crashfuse.method.config.MethodConfig` settings of every fold (``assignment``,
@@ -141,8 +142,9 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
             f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
             f"fit {cov['fit_s']:.1f} s")
     if auto:
-        results += [_auto_fold([r for r in results if r["coverage"]["test_id"] == t]) for t in tests]
-        say("auto: " + ", ".join(f"{r['coverage']['test_id']} {r['record'].settings['chosen']}" for r in results[-len(tests):]))
+        chosen = [_auto_fold([r for r in results if r["coverage"]["test_id"] == t], inputs) for t in tests]
+        say("auto: " + ", ".join(f"{r['coverage']['test_id']} {r['record'].settings['chosen']}" for r in chosen))
+        results += chosen
     modes = [*inputs, AUTO] if auto else inputs
     cae_rows = [row for t in tests for mode in modes for row in _cae_rows(campaign, surrogate, t, mode)]
     iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=list(COLUMNS))
@@ -283,12 +285,14 @@ def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples
     return {"iso": iso, "coverage": coverage, "frame": frame, "record": record}
 
 
-def _auto_fold(candidates: list) -> dict:
-    """The ``auto`` fold of one held-out test: a copy of its candidate fold with the smallest inner error.
+def _auto_fold(candidates: list, inputs: list) -> dict:
+    """The ``auto`` fold of one held-out test: a copy of the candidate fold :func:`choose` picks by inner error,
+    the candidates ordered simplest first (K ascending, then the order of ``inputs``).
 
     The fold JSON keeps the chosen fold's K, settings and metrics and adds ``chosen`` (``<inputs>
     <model>``) and ``candidates`` (every candidate's inner error, (m/s^2)^2, as text).
     """
+    candidates = sorted(candidates, key=lambda c: (c["record"].k, inputs.index(c["coverage"]["inputs"])))
     pick = choose([c["coverage"]["inner_error"] for c in candidates])
     won = candidates[pick.index]
     names = [f"{c['coverage']['inputs']} {c['coverage']['model']}" for c in candidates]

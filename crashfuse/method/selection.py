@@ -19,6 +19,7 @@ import numpy as np
 
 from crashfuse.gp.subsets import stratified_subset
 from crashfuse.io.campaign import Campaign
+from crashfuse.method.hybrid import MIN_GAIN
 from crashfuse.method.model import FittedModel, training_data
 from crashfuse.method.projection import BRANCHES
 
@@ -77,13 +78,19 @@ class Choice:
     scores: list
 
 
-def choose(scores) -> Choice:
-    """The candidate with the smallest inner error; the first among ties (list candidates simplest first).
+def choose(scores, min_gain: float = MIN_GAIN) -> Choice:
+    """The simplest candidate no later one improves on by ``min_gain``; candidates listed simplest first.
+
+    Walking the list, a candidate replaces the current choice when its inner error is below
+    ``(1 - min_gain)`` times the current one's. The closed-form error flatters flexible candidates
+    (the mixture and hyperparameters saw the left-out test), so a small gain is not evidence.
 
     Parameters
     ----------
     scores : sequence of float
-        :func:`inner_error` per candidate.
+        :func:`inner_error` per candidate, simplest first (e.g. K ascending).
+    min_gain : float
+        Fraction of the current choice's error a more complex candidate must remove.
 
     Returns
     -------
@@ -92,9 +99,14 @@ def choose(scores) -> Choice:
     Raises
     ------
     ValueError
-        No candidate, or none with a finite score.
+        No candidate with a finite score.
     """
     scores = [float(s) for s in scores]
-    if not scores or not np.isfinite(scores).any():
+    finite = [i for i, s in enumerate(scores) if np.isfinite(s)]
+    if not finite:
         raise ValueError(f"expected at least one candidate with a finite inner error, got {scores}")
-    return Choice(int(np.argmin(scores)), scores)
+    best = finite[0]
+    for i in finite[1:]:
+        if scores[i] < (1.0 - min_gain) * scores[best]:
+            best = i
+    return Choice(best, scores)
