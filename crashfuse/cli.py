@@ -131,7 +131,8 @@ def _world_validate_method(args) -> int:
                  matrices=args.matrices, n_cae=args.n_cae, inputs=args.inputs, ks=args.k, n_samples=args.samples)
     base = QUICK if args.quick else DEFAULTS
     spread = {name: base[name] if value is None else value for name, value in given.items()}
-    result = validate_method(args.out, work=args.work, random_state=args.seed, n_jobs=args.jobs, **spread)
+    result = validate_method(args.out, work=args.work, random_state=args.seed, n_jobs=args.jobs, auto=args.auto,
+                             **spread)
     print(result.summary.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
     return 0
 
@@ -469,6 +470,7 @@ def _add_world_validate_method(wsub) -> None:
     s.add_argument("--inputs", nargs="+", default=None, help="input modes paper state (default state)")
     s.add_argument("--k", type=_positive, nargs="+", default=None, help="mixture sizes (default 1 2 3)")
     s.add_argument("--samples", type=_positive, default=None, help="Monte Carlo samples per fold (default 200)")
+    s.add_argument("--auto", action="store_true", help="also the auto model, chosen among the input modes and K")
     s.add_argument("--seed", type=_seed, default=0, help="seed of every evaluation (default 0)")
     s.add_argument("--jobs", type=_positive, default=2, help="worker processes for each campaign's folds (default 2)")
     s.set_defaults(func=_world_validate_method)

@@ -19,6 +19,8 @@ from crashfuse.method.model import fit_model, load_model
 from crashfuse.evaluation.records import read_fold_json
 from crashfuse.method.rollout import predict
 from crashfuse.method.selection import choose
+from crashfuse.reporting.plots import plot_evaluation
+from crashfuse.reporting.tracking import load_folds
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
@@ -172,7 +174,7 @@ def test_fold_json_matches_the_table(result):
     assert (out / "state" / "K1" / "T08" / record.prediction).exists()
 
 
-def test_auto_copies_the_candidate_with_the_smallest_inner_error(result):
+def test_auto_copies_the_candidate_with_the_smallest_inner_error(campaign, result):
     """Per held-out test, the auto rows, fold JSON and prediction are the chosen candidate's (simplest first), named in
     the JSON."""
     res, out = result
@@ -189,6 +191,10 @@ def test_auto_copies_the_candidate_with_the_smallest_inner_error(result):
         np.testing.assert_array_equal(auto.overall.to_numpy(), chosen.overall.to_numpy())
         pd.testing.assert_frame_equal(res.predictions["auto", "auto", test_id],
                                       res.predictions[best.inputs, best.model, test_id])
+        assert record.metrics["inner_error_mps2_sq"] == pytest.approx(best.inner_error)
+    plot_evaluation(res, out, campaign)
+    _, folds = load_folds(out)  # tracking reads the auto folds: same keys within (auto, auto), CAE rows there
+    assert sum(f.record.model == "auto" for f in folds) == len(KEEP)
 
 
 def test_cli_prepare_then_one_fold(campaign, tmp_path):

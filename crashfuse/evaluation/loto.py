@@ -278,8 +278,7 @@ def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples
                  "cluster_switches": float(coverage["cluster_switches"]),
                  "n_gps_loading": float(coverage["n_gps_loading"]),
                  "n_gps_unloading": float(coverage["n_gps_unloading"]),
-                 "extrapolation": float(pred.extrapolation["any"]),
-                 **({"inner_error_mps2_sq": inner_mse} if inner_mse is not None and np.isfinite(inner_mse) else {})},
+                 "extrapolation": float(pred.extrapolation["any"])},
         figures=[f"{test_id}.png"], prediction=f"{test_id}_prediction.csv",
     )
     return {"iso": iso, "coverage": coverage, "frame": frame, "record": record}
@@ -289,8 +288,9 @@ def _auto_fold(candidates: list, inputs: list) -> dict:
     """The ``auto`` fold of one held-out test: a copy of the candidate fold :func:`choose` picks by inner error,
     the candidates ordered simplest first (K ascending, then the order of ``inputs``).
 
-    The fold JSON keeps the chosen fold's K, settings and metrics and adds ``chosen`` (``<inputs>
-    <model>``) and ``candidates`` (every candidate's inner error, (m/s^2)^2, as text).
+    The fold JSON keeps the chosen fold's K, settings and metrics and adds the settings ``chosen``
+    (``<inputs> <model>``) and ``candidates`` (every candidate's inner error as text) and the metric
+    ``inner_error_mps2_sq`` (the chosen one's; a candidate's may be infinite, which a metric cannot be).
     """
     candidates = sorted(candidates, key=lambda c: (c["record"].k, inputs.index(c["coverage"]["inputs"])))
     pick = choose([c["coverage"]["inner_error"] for c in candidates])
@@ -299,7 +299,8 @@ def _auto_fold(candidates: list, inputs: list) -> dict:
     relabel = {"inputs": AUTO, "model": AUTO}
     record = dataclasses.replace(won["record"], inputs=AUTO, settings={
         **won["record"].settings, "chosen": names[pick.index],
-        "candidates": "; ".join(f"{n}: {e:.6g}" for n, e in zip(names, pick.scores))})
+        "candidates": "; ".join(f"{n}: {e:.6g}" for n, e in zip(names, pick.scores))},
+        metrics={**won["record"].metrics, "inner_error_mps2_sq": pick.scores[pick.index]})
     return {"iso": [{**row, **relabel} for row in won["iso"]], "coverage": {**won["coverage"], **relabel},
             "frame": won["frame"], "record": record}
 

@@ -232,12 +232,12 @@ def campaign_folder(spec: CampaignSpec, work: Path, say) -> Path:
     return folder
 
 
-def evaluation_key(inputs, ks, n_samples, random_state) -> str:
-    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}-n{n_samples}-seed{random_state}"
+def evaluation_key(inputs, ks, n_samples, random_state, auto=False) -> str:
+    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{'-auto' if auto else ''}-n{n_samples}-seed{random_state}"
 
 
 def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int, n_jobs: int,
-                      progress=None) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
+                      progress=None, auto: bool = False) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
     """The campaign's ISO table and coverage, from ``out`` if there, else evaluated and written there
     (``progress`` receives evaluate's line per fold).
 
@@ -252,7 +252,7 @@ def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, rando
     if iso_path.is_file() and cov_path.is_file():
         return pd.read_csv(iso_path), pd.read_csv(cov_path), True
     result = evaluate(read_campaign(folder), ks=ks, inputs=inputs, n_samples=n_samples, random_state=random_state,
-                      n_jobs=n_jobs, progress=progress)
+                      n_jobs=n_jobs, progress=progress, auto=auto)
     out.mkdir(parents=True, exist_ok=True)
     for frame, path in ((result.coverage, cov_path), (result.iso_table, iso_path)):
         with atomic_path(path) as tmp:
@@ -324,7 +324,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
                     strengths=DEFAULTS["strengths"], seeds=DEFAULTS["seeds"], matrices=DEFAULTS["matrices"],
                     n_cae=DEFAULTS["n_cae"], inputs=DEFAULTS["inputs"], ks=DEFAULTS["ks"],
                     n_samples: int = DEFAULTS["n_samples"], random_state: int = 0, n_jobs: int = 2,
-                    progress: Callable[[str], None] | None = print) -> MatrixResult:
+                    progress: Callable[[str], None] | None = print, auto: bool = False) -> MatrixResult:
     """Generate the spread (:func:`plan`), evaluate each campaign, write the matrix table.
 
     Parameters
@@ -346,6 +346,8 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
         Worker processes for each campaign's folds.
     progress : callable, optional
         Receives one line per campaign, and an indented line per fold.
+    auto : bool
+        Also rate the ``auto`` model (:func:`crashfuse.evaluation.loto.evaluate`), chosen among ``inputs`` x ``ks``.
 
     Returns
     -------
@@ -365,7 +367,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
     for path, field in ((out, "out"), (work, "work")):
         if path.exists() and not path.is_dir():
             raise InputError("expected a folder, found a file", path, field)
-    eval_key = evaluation_key(inputs, ks, n_samples, random_state)
+    eval_key = evaluation_key(inputs, ks, n_samples, random_state, auto)
     say(f"validate-method: {len(specs)} campaigns x {' '.join(inputs)} K {' '.join(map(str, ks))}, "
         f"{n_samples} samples, work {work}")
     rows = []
@@ -373,7 +375,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
         t1 = time.perf_counter()
         folder = campaign_folder(spec, work, say)
         iso, cov, reused = evaluate_campaign(folder, work / "evaluations" / spec.key / eval_key, inputs, ks,
-                                             n_samples, random_state, n_jobs, lambda line: say(f"  {line}"))
+                                             n_samples, random_state, n_jobs, lambda line: say(f"  {line}"), auto)
         scored = score_rows(iso, cov)
         rows += [{**dataclasses.asdict(spec), **row} for row in scored]
         say(f"[{i}/{len(specs)}] {spec.key}: " + ", ".join(
