@@ -72,8 +72,9 @@ def _world_generate(args) -> int:
     from crashfuse.world.generate import generate
     from crashfuse.world.presets import resolve
 
-    if args.matrix != "table1":
-        raise InputError("the first world has the Table 1 matrix only; use --world multibody", field="--matrix")
+    if args.matrix != "table1" or args.n_tests is not None:
+        raise InputError("the first world has the Table 1 matrix only; use --world multibody",
+                         field="--matrix" if args.matrix != "table1" else "--n-tests")
     if args.withhold is not None and len(args.withhold) > 1:
         raise InputError("the first world withholds one effect at a time; use --world multibody", field="--withhold")
     withhold = None if args.withhold is None else args.withhold[0]
@@ -89,7 +90,8 @@ def _world_generate_multibody(args) -> int:
     from crashfuse.world.multibody.presets import N_CAE, resolve
 
     design = resolve(args.preset, args.withhold, args.strength, parse_overrides(args.effect_param))
-    folder = generate(args.out, design, seed=args.seed, n_cae=args.n_cae or N_CAE, matrix=args.matrix)
+    folder = generate(args.out, design, seed=args.seed, n_cae=args.n_cae or N_CAE, matrix=args.matrix,
+                      n_tests=args.n_tests)
     print(f"wrote {folder} (world multibody, matrix {args.matrix}, preset {design.preset}, "
           f"withheld {list(design.withheld)}, seed {args.seed})")
     return 0
@@ -408,6 +410,8 @@ def _add_world_generate(wsub) -> None:
     _add_world_option(s)
     s.add_argument("--matrix", choices=("table1", "wide"), default="table1",
                    help="test matrix: the paper's Table 1 (default) or 11 tests over 10-37 mph (multibody only)")
+    s.add_argument("--n-tests", type=_positive, default=None,
+                   help="with --matrix wide: that many tests evenly spaced over 10-37 mph (a test library)")
     s.add_argument("--withhold", nargs="+", default=None, metavar="EFFECT",
                    help="effect(s) the tests carry and the CAE does not, or none (several: multibody only)")
     s.add_argument("--strength", default="realistic", help="realistic (default) or subtle")
@@ -611,7 +615,8 @@ _FLAGS = {
     "report": {"score": "--score"},
     "plot summary": {"score": "--score", "window": "--window"},
     "world generate": {"preset": "--preset", "withhold": "--withhold", "strength": "--strength",
-                       "overrides": "--effect-param", "seed": "--seed", "matrix": "--matrix", "n_cae": "--n-cae"},
+                       "overrides": "--effect-param", "seed": "--seed", "matrix": "--matrix", "n_cae": "--n-cae",
+                       "n_tests": "--n-tests"},
     "world calibrate": {"max_nfev": "--max-evals"},
     "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds", "worlds": "--worlds"},
     "world validate-method": {"worlds": "--worlds", "withheld": "--withheld", "strengths": "--strengths",

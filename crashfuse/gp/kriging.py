@@ -69,8 +69,8 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         search; ``None`` uses all. ``beta`` and ``sigma^2`` are then re-profiled on the
         conditioning set, which costs one Cholesky factorisation.
     max_condition_points : int or None
-        At most this many points (a seeded random subset, containing the fit subset's
-        points when it is smaller) are conditioned on (subset of data); ``None`` uses all.
+        About this many points (the fit subset's, topped up evenly within each group when ``fit``
+        gets groups, else at random) are conditioned on (subset of data); ``None`` uses all.
     normalize_y : bool
         Standardise ``y`` before fitting (numerical only: the profiled likelihood is
         affine-equivariant in ``y``).
@@ -212,7 +212,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
             theta_bounds=self.theta_bounds, nugget_bounds=self.nugget_bounds,
             candidates=self.theta_max_candidates, n_restarts=self.n_restarts)
         self.theta_, self.nugget_ = np.exp(eta[:-1]), float(np.exp(eta[-1]))
-        i_cond = condition_subset(len(u), i_fit, self.max_condition_points, rng)
+        i_cond = condition_subset(len(u), i_fit, self.max_condition_points, rng, groups)
         self._condition(Z[i_cond], u[i_cond])
         self._calibrate(u[i_cond], None if groups is None else groups[i_cond])
         return self

@@ -23,6 +23,9 @@ THETA_MAX_CANDIDATES = (1.0, 10.0, 100.0, 1000.0)  # theta upper bounds GMMGPBia
 # A pooled model's cluster GP is judged by leaving its tests out one at a time: with fewer than three
 # the judgement (and the GP's own theta bound and band calibration) is impossible.
 MIN_CLUSTER_TESTS = 3
+# Rows one GP conditions on: every row of up to 20 tests at the default 200 points per test and branch
+# (the exact GP); a larger test library keeps an even share of each test (docs/bias-model.md, "Speed").
+MAX_CONDITION_POINTS = 4000
 
 
 class TooFewPointsError(ValueError):
@@ -49,7 +52,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         grouped refits) are the bias model's, see
         ``docs/bias-model.md``.
     max_fit_points, max_condition_points, normalize_y, blas_threads
-        Passed to every cluster's :class:`KrigingGP` (``blas_threads`` also limits the
+        Passed to every cluster's :class:`KrigingGP` (``max_condition_points`` default
+        :data:`MAX_CONDITION_POINTS`, not the GP's all; ``blas_threads`` also limits the
         mixture, the OpenMP threads of its k-means initialisation, and the prediction methods
         here). ``max_*`` apply per cluster.
     n_init : int
@@ -100,7 +104,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
 
     def __init__(self, *, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
                  theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0), n_restarts=2,
-                 max_fit_points=300, max_condition_points=None, normalize_y=True, n_init=5,
+                 max_fit_points=300, max_condition_points=MAX_CONDITION_POINTS, normalize_y=True, n_init=5,
                  reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None,
                  theta_max_candidates=THETA_MAX_CANDIDATES, calibrate_variance=True, estimate_scatter=True,
                  pooled=False, min_cluster_tests=MIN_CLUSTER_TESTS):

@@ -42,7 +42,8 @@ def all_params(design: Design) -> dict:
     return {**VEHICLE, **design.params, **MEASUREMENT}
 
 
-def build(design: Design, seed: int = 0, n_cae: int = N_CAE, matrix: str = "table1") -> tuple[Campaign, dict]:
+def build(design: Design, seed: int = 0, n_cae: int = N_CAE, matrix: str = "table1",
+          n_tests: int | None = None) -> tuple[Campaign, dict]:
     """Simulate the campaign in memory.
 
     Parameters
@@ -55,6 +56,8 @@ def build(design: Design, seed: int = 0, n_cae: int = N_CAE, matrix: str = "tabl
         Latin-hypercube CAE runs besides the companions.
     matrix : {"table1", "wide"}
         Test matrix.
+    n_tests : int, optional
+        With ``wide``: that many tests evenly spaced over 10-37 mph (default: the matrix's 11).
 
     Returns
     -------
@@ -66,7 +69,7 @@ def build(design: Design, seed: int = 0, n_cae: int = N_CAE, matrix: str = "tabl
     if isinstance(n_cae, bool) or not isinstance(n_cae, (int, np.integer)) or n_cae < 0:
         raise InputError(f"expected a count >= 0, got {n_cae!r}", field="n_cae")
     params = all_params(design)
-    tests = matrix_tests(matrix)
+    tests = matrix_tests(matrix, n_tests)
     companions = tests.assign(run_id=["C" + r for r in tests["run_id"]])
     tests["cae_run_id"] = companions["run_id"]
     cae = pd.concat([companions, cae_design(n_cae, seed)], ignore_index=True)
@@ -116,13 +119,13 @@ def world_key(design: Design, seed: int, params: dict, matrix: str, n_tests: int
 
 
 def generate(out: str | os.PathLike, design: Design, seed: int = 0, n_cae: int = N_CAE,
-             matrix: str = "table1") -> Path:
+             matrix: str = "table1", n_tests: int | None = None) -> Path:
     """Write the campaign folder ``out`` (mph, lb, g) with ``world.json``, atomically.
 
     :func:`crashfuse.io.campaign_write.write_campaign` refuses a non-empty folder and writes the answer
     key in the same temporary folder, so a campaign never appears without it.
     """
-    campaign, world = build(design, seed, n_cae, matrix)
+    campaign, world = build(design, seed, n_cae, matrix, n_tests)
     key = json.dumps(world, indent=2, sort_keys=True, allow_nan=False) + "\n"
     return write_campaign(campaign, out, extra_files={WORLD_JSON: key})
 

@@ -9,7 +9,8 @@ absent from the CAE (every other effect is on both sides with the same parameter
 
 Test matrices: ``table1`` is the paper's Table 1 (shared with the first world); ``wide`` spreads
 11 tests over 10-37 mph with Table 1's three configurations, so that the slow tests' rebound falls
-inside the 0-60 ms scoring window and the fastest lies beyond the paper's 35.2 mph.
+inside the 0-60 ms scoring window and the fastest lies beyond the paper's 35.2 mph; ``wide`` with
+another number of tests spaces them evenly over the same range (a test library of any size).
 """
 
 from __future__ import annotations
@@ -71,22 +72,31 @@ def resolve(preset: str | None = None, withhold=None, strength: str = "realistic
     return Design(preset, withheld, strength, params)
 
 
-def wide_tests() -> pd.DataFrame:
-    """The wide matrix: 11 tests over 10-37 mph, same columns as :func:`matrix_tests`."""
+def wide_tests(n_tests: int | None = None) -> pd.DataFrame:
+    """The wide matrix: 11 tests over 10-37 mph (or ``n_tests`` evenly spaced there), same columns as
+    :func:`matrix_tests`."""
+    speeds = WIDE_SPEEDS_MPH if n_tests in (None, len(WIDE_SPEEDS_MPH)) else np.linspace(10.0, 37.0, n_tests)
     rows = []
-    for i, mph in enumerate(WIDE_SPEEDS_MPH):
+    for i, mph in enumerate(speeds):
         pt, drive = WIDE_CONFIGS[i % len(WIDE_CONFIGS)]
         same = TABLE1[(TABLE1["powertrain"] == pt) & (TABLE1["drive"] == drive)]
         rows.append((f"T{i + 1:02d}", mph * MPH, same["front_lb"].mean() * LB, same["rear_lb"].mean() * LB, pt, drive))
     return pd.DataFrame(rows, columns=["run_id", "v0_mps", "front_weight_kg", "rear_weight_kg", "powertrain", "drive"])
 
 
-def matrix_tests(name: str) -> pd.DataFrame:
-    """Tests of a named matrix in SI: run_id, v0_mps, front_weight_kg, rear_weight_kg, powertrain, drive."""
+def matrix_tests(name: str, n_tests: int | None = None) -> pd.DataFrame:
+    """Tests of a named matrix in SI: run_id, v0_mps, front_weight_kg, rear_weight_kg, powertrain, drive.
+
+    ``n_tests`` (``wide`` only, at least 2): that many tests evenly spaced over 10-37 mph.
+    """
+    if n_tests is not None and (name != "wide" or isinstance(n_tests, bool)
+                                or not isinstance(n_tests, (int, np.integer)) or n_tests < 2):
+        raise InputError(f"expected a number of tests >= 2 with the wide matrix, got {n_tests!r} with {name!r}",
+                         field="n_tests")
     if name == "table1":
         return table1_tests()
     if name == "wide":
-        return wide_tests()
+        return wide_tests(n_tests)
     raise InputError(f"unknown test matrix {name!r}; expected one of {', '.join(MATRICES)}", field="matrix")
 
 
