@@ -15,7 +15,7 @@ from scipy.optimize import minimize
 from crashfuse.gp.kernels import factor_with_nugget, inverse_from_factor, self_correlation
 from crashfuse.gp.likelihood import gls, negative_log_likelihood
 from crashfuse.gp.posterior import condition, latent_variance, predictive_mean, variance_parts
-from crashfuse.gp.subsets import stratified_subset, spread
+from crashfuse.gp.subsets import stratified_subset
 
 __all__ = ["Z95", "grouped_residuals", "grouped_cv_log_density", "variance_factor", "scatter_needs"]
 
@@ -24,10 +24,11 @@ Z95 = 1.959963984540054  # two-sided 95 % normal quantile
 # scipy's 2e-9: they only size the test band. The main fit keeps scipy's default, where a
 # looser tolerance can end in another local optimum (docs/decisions.md).
 SCATTER_LBFGS = {"ftol": 1e-6}
-# A test library of dozens of tests: at most this many tests are left out in turn (evenly spread in
-# their sorted order), each refit conditioned on at most this many rows of the others (evenly spaced
-# within each test). Up to 12 tests of 200 rows nothing is left out: the exact path (docs/bias-model.md).
-SCATTER_MAX_TESTS = 12
+# A test library of dozens of tests: at most this many refits, each leaving out one block of tests
+# (the tests dealt in turn in sorted order), conditioned on at most this many rows of the others
+# (evenly spaced within each test). Up to 12 tests of 200 rows: one test per refit, every row - the
+# exact leave-one-test-out path (docs/bias-model.md, "Speed").
+SCATTER_MAX_FOLDS = 12
 SCATTER_MAX_ROWS = 2500
 
 
@@ -111,10 +112,10 @@ def variance_factor(eta, Z, u, H, groups):
     return max(1.0, (float(np.quantile(np.abs(res[0]) / np.sqrt(res[1]), 0.95)) / Z95) ** 2)
 
 
-def scatter_needs(eta, bounds, hyp, cond, max_groups=SCATTER_MAX_TESTS, max_rows=SCATTER_MAX_ROWS):
+def scatter_needs(eta, bounds, hyp, cond, max_folds=SCATTER_MAX_FOLDS, max_rows=SCATTER_MAX_ROWS):
     """Variance each conditioning point needs beyond the latent band when its group (test) is left out.
 
-    For each group (at most ``max_groups`` of them, evenly spread) the GP is refitted without it - likelihood re-optimised from ``eta`` under ``bounds``,
+    For each group (past ``max_folds`` groups: each block of groups) the GP is refitted without it - likelihood re-optimised from ``eta`` under ``bounds``,
     variance factor recomputed, conditioned on the other groups' points - and predicts the group's points:
     ``need = (e / 1.96)^2 - latent variance`` (normalised units). The closed-form leave-one-group-out at fixed
     hyperparameters is far more optimistic (state folds of the paper campaign: scatter 0.00-0.06 vs 0.05-0.11
@@ -130,9 +131,10 @@ def scatter_needs(eta, bounds, hyp, cond, max_groups=SCATTER_MAX_TESTS, max_rows
         The hyperparameter-fit subset: inputs (n_hyp, d), outputs (n_hyp,), design (n_hyp, p), groups (n_hyp,).
     cond : tuple (Z, u, H, groups)
         The conditioning set, likewise; its groups are the ones left out in turn.
-    max_groups : int or None
-        Groups left out at most (None: every group). Each refit costs a likelihood search and a
-        conditioning, so leaving out every one of dozens of tests grows like ``n^4``.
+    max_folds : int or None
+        Refits at most (None: one per group). With more groups, group ``i`` of the sorted groups is
+        left out in block ``i mod max_folds``: every group still gets held-out needs, from
+        ``max_folds`` refits (one per test over dozens of tests grows like ``n^4``).
     max_rows : int or None
         Rows of the other groups each refit conditions on at most (None: all).
 
@@ -143,8 +145,11 @@ def scatter_needs(eta, bounds, hyp, cond, max_groups=SCATTER_MAX_TESTS, max_rows
     Z_hyp, u_hyp, H_hyp, g_hyp = hyp
     Z, u, H, groups = cond
     needs = []
-    for grp in spread(np.unique(groups), max_groups):
-        keep, out = g_hyp != grp, groups == grp
+    names = np.unique(groups)
+    blocks = np.arange(len(names)) % (len(names) if max_folds is None else max_folds)
+    for block in np.unique(blocks):
+        left = names[blocks == block]
+        keep, out = ~np.isin(g_hyp, left), np.isin(groups, left)
         e = minimize(negative_log_likelihood, eta, args=(Z_hyp[keep], u_hyp[keep], H_hyp[keep]), jac=True,
                      method="L-BFGS-B", bounds=bounds, options=SCATTER_LBFGS).x
         theta = np.exp(e[:-1])

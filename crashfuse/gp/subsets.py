@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["random_subset", "stratified_subset", "condition_subset", "spread"]
+__all__ = ["random_subset", "stratified_subset", "condition_subset"]
 
 
 def random_subset(n, limit, rng):
@@ -54,23 +54,6 @@ def stratified_subset(groups, limit):
     return np.sort(np.concatenate(keep))
 
 
-def spread(values, limit):
-    """At most ``limit`` of ``values`` (a sorted array), evenly spread from first to last; all if None.
-
-    Parameters
-    ----------
-    values : ndarray, shape (n,)
-    limit : int or None
-
-    Returns
-    -------
-    ndarray
-    """
-    if limit is None or len(values) <= limit:
-        return values
-    return values[np.unique(np.linspace(0, len(values) - 1, int(limit)).round().astype(int))]
-
-
 def condition_subset(n, i_fit, limit, rng, groups=None):
     """Conditioning set: all rows, or the fit subset ``i_fit`` topped up to about ``limit``.
 
@@ -92,8 +75,9 @@ def condition_subset(n, i_fit, limit, rng, groups=None):
     """
     if limit is None or n <= limit:
         return np.arange(n)
-    if groups is not None:
-        return np.union1d(i_fit, stratified_subset(groups, max(0, int(limit) - len(i_fit))))
+    if groups is not None and len(i_fit) < limit:
+        rest = np.setdiff1d(np.arange(n), i_fit)
+        return np.union1d(i_fit, rest[stratified_subset(groups[rest], int(limit) - len(i_fit))])
     if len(i_fit) >= limit:
         return np.sort(rng.choice(i_fit, size=int(limit), replace=False))
     rest = np.setdiff1d(np.arange(n), i_fit)
