@@ -9,6 +9,7 @@ import argparse
 import json
 import os
 import sys
+from pathlib import Path
 
 from crashfuse.catalogue import EFFECTS
 from crashfuse.errors import InputError
@@ -153,13 +154,90 @@ def _fit(args) -> int:
 
     config = MethodConfig(k=args.k, inputs=args.inputs, random_state=args.seed, **_method_settings(args))
     campaign = read_campaign(args.campaign)
-    model = fit_model(campaign, config, holdout=args.holdout)
+    model = fit_model(campaign, config, holdout=args.holdout, surrogate=_read_surrogate(args, campaign))
     model.save(args.out)
     gps = {b: 0 if est is None else len(est.gps_) for b, est in model.bias_.items()}
     print(f"wrote {args.out}: K={args.k} {args.inputs} inputs, {len(model.training_tests)} training tests, "
           f"GPs per branch {gps}, campaign {model.campaign_hash[:12]}")
     if model.physics is not None:
         print(_physics_line(model.physics))
+    return 0
+
+
+def _read_surrogate(args, campaign):
+    """The ``--surrogate`` file's CAE surrogate, checked against ``campaign``; None without one."""
+    from crashfuse.method.model import load_surrogate
+
+    if not args.surrogate:
+        return None
+    surrogate = load_surrogate(args.surrogate)
+    surrogate.check_campaign(campaign, args.surrogate)  # another campaign's would skew every fold silently
+    return surrogate
+
+
+def _rollout(args) -> int:
+    from crashfuse.evaluation.fold import ROLLOUT_SUFFIX, rollout_fold, write_rollout_facts
+    from crashfuse.io.atomic import atomic_path
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.method.model import load_model
+
+    campaign, model = read_campaign(args.campaign), load_model(args.model)
+    if model.campaign_hash != campaign.content_hash():
+        raise InputError(f"the model was fitted on another campaign ({model.campaign_hash[:12]})", args.model,
+                         "campaign_hash")
+    _known_test(campaign, args.test)
+    pred, facts = rollout_fold(model, campaign, args.test, args.samples, args.band, args.inner)
+    out = Path(args.out)
+    with atomic_path(out / f"{args.test}_prediction.csv") as tmp:
+        pred.frame().to_csv(tmp, index=False, float_format="%.6g")
+    write_rollout_facts(out / f"{args.test}{ROLLOUT_SUFFIX}", facts)
+    print(f"wrote {out}: {args.test} {facts['inputs']} {facts['model']}, {args.samples} samples, "
+          f"{facts['metrics']['predict_seconds']:.1f} s")
+    return 0
+
+
+def _score(args) -> int:
+    import pandas as pd
+
+    from crashfuse.evaluation.fold import ROLLOUT_SUFFIX, cae_pulse, read_rollout_facts, score_fold
+    from crashfuse.evaluation.iso_table import COLUMNS
+    from crashfuse.evaluation.loto import COVERAGE_COLUMNS
+    from crashfuse.evaluation.records import write_fold_json
+    from crashfuse.io.atomic import atomic_path
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.io.prediction import read_prediction_csv
+
+    campaign, folder = read_campaign(args.campaign), Path(args.fold)
+    _known_test(campaign, args.test)
+    facts = read_rollout_facts(folder / f"{args.test}{ROLLOUT_SUFFIX}")
+    frame = read_prediction_csv(folder / f"{args.test}_prediction.csv")
+    cae = None if campaign.companion(args.test) else cae_pulse(campaign, _read_surrogate(args, campaign), args.test)
+    scored = score_fold(campaign, args.test, frame, facts, args.windows, cae)
+    write_fold_json(folder / f"{args.test}.fold.json", scored["record"])
+    for rows, columns, name in ((scored["cae_iso"] + scored["iso"], list(COLUMNS), "iso_table.csv"),
+                                ([scored["coverage"]], COVERAGE_COLUMNS, "coverage.csv")):
+        with atomic_path(Path(args.table_dir) / name) as tmp:
+            pd.DataFrame(rows, columns=columns).to_csv(tmp, index=False, float_format="%.6g")
+    last = scored["iso"][-1]
+    print(f"{args.test} {facts['inputs']} {facts['model']}: ISO({last['window_ms']}) {last['overall']:.3f}, "
+          f"coverage {scored['coverage']['coverage']:.2f}")
+    return 0
+
+
+def _known_test(campaign, test_id) -> None:
+    if test_id not in campaign.tests:
+        raise InputError(f"expected a test of the campaign ({', '.join(campaign.tests)}), got {test_id!r}",
+                         campaign.root, "--test")
+
+
+def _plot_fold(args) -> int:
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.reporting.plots import plot_fold
+
+    campaign = read_campaign(args.campaign)
+    _known_test(campaign, args.test)
+    test = campaign.pulses[args.test].after_contact()
+    print(f"wrote {plot_fold(test, args.prediction, args.out, title=args.title)}")
     return 0
 
 
@@ -210,13 +288,10 @@ def _prepare(args) -> int:
 def _evaluate(args) -> int:
     from crashfuse.evaluation.loto import evaluate
     from crashfuse.io.campaign import read_campaign
-    from crashfuse.method.model import load_surrogate
     from crashfuse.reporting.plots import plot_evaluation
 
     campaign = read_campaign(args.campaign)
-    surrogate = load_surrogate(args.surrogate) if args.surrogate else None
-    if surrogate is not None:  # a surrogate of another campaign would silently skew every fold
-        surrogate.check_campaign(campaign, args.surrogate)
+    surrogate = _read_surrogate(args, campaign)
     result = evaluate(campaign, ks=args.k, inputs=args.inputs, out=args.out,
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
                       holdout=args.holdout, band=args.band, auto=args.auto, **_method_settings(args))
@@ -229,12 +304,9 @@ def _evaluate(args) -> int:
 def _diagnose(args) -> int:
     from crashfuse.diagnosis.diagnose import diagnose, write_diagnosis
     from crashfuse.io.campaign import read_campaign
-    from crashfuse.method.model import load_surrogate
 
     campaign = read_campaign(args.campaign)
-    surrogate = load_surrogate(args.surrogate) if args.surrogate else None
-    if surrogate is not None:
-        surrogate.check_campaign(campaign, args.surrogate)
+    surrogate = _read_surrogate(args, campaign)
     diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, alpha=args.alpha, move=args.move,
                     k=args.k, inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
                     in_sample=args.in_sample, residual_model=not args.no_residual)
@@ -340,7 +412,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="crashfuse", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (_add_pulse_metrics, _add_iso_score, _add_barrier_model, _add_world, _add_fit, _add_predict,
-                _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report, _add_plot, _add_track):
+                _add_rollout, _add_score, _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report,
+                _add_plot, _add_track):
         add(sub)
     return p
 
@@ -488,9 +561,36 @@ def _add_fit(sub) -> None:
                    help="bias inputs: paper [x, v0, w_f, w_r] or state [x, v, v0, w_f, w_r] (default paper)")
     s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
                    help="test to keep out of the bias data (repeatable)")
+    _add_surrogate_option(s)
     _add_method_options(s)
     s.add_argument("--out", required=True, help="model file to write (e.g. model.cfmodel)")
     s.set_defaults(func=_fit)
+
+
+def _add_rollout(sub) -> None:
+    s = sub.add_parser("rollout", help="a fold's rollout: its held-out test's condition predicted by a model "
+                                       "fitted without it (prediction CSV and the rollout's facts)")
+    s.add_argument("model", help="model file (.cfmodel) from 'crashfuse fit --holdout TEST'")
+    _add_campaign(s)
+    s.add_argument("--test", required=True, help="the held-out test")
+    s.add_argument("--samples", type=_positive, default=1000, help="Monte Carlo samples (default 1000)")
+    s.add_argument("--inner", action="store_true", help="also the model's inner error (what --auto chooses by)")
+    _add_band_option(s)
+    s.add_argument("--out", required=True,
+                   help="fold folder for <test>_prediction.csv and <test>.rollout.json")
+    s.set_defaults(func=_rollout)
+
+
+def _add_score(sub) -> None:
+    s = sub.add_parser("score", help="a fold's ISO/TS 18571 rows, band coverage and fold JSON from its rollout")
+    _add_campaign(s)
+    s.add_argument("fold", help="fold folder holding <test>_prediction.csv and <test>.rollout.json")
+    s.add_argument("--test", required=True, help="the held-out test")
+    s.add_argument("--windows", nargs="+", default=["0-20", "0-40", "0-60"], metavar="START-END",
+                   help="ISO windows in ms (default 0-20 0-40 0-60)")
+    _add_surrogate_option(s)
+    s.add_argument("--table-dir", required=True, help="folder for the fold's iso_table.csv and coverage.csv")
+    s.set_defaults(func=_score)
 
 
 def _add_predict(sub) -> None:
@@ -586,6 +686,13 @@ def _add_plot(sub) -> None:
     s.add_argument("--score", default="overall", help="score to plot (default overall)")
     s.add_argument("--out", required=True, help="PNG file")
     s.set_defaults(func=_plot_summary)
+    s = psub.add_parser("fold", help="a fold's test, CAE and corrected pulse with its band")
+    _add_campaign(s)
+    s.add_argument("prediction", help="the fold's prediction CSV")
+    s.add_argument("--test", required=True, help="the held-out test")
+    s.add_argument("--title", default=None, help="figure title")
+    s.add_argument("--out", required=True, help="PNG file")
+    s.set_defaults(func=_plot_fold)
 
 
 def _add_track(sub) -> None:
@@ -608,6 +715,9 @@ _METHOD_FLAGS = {"k": "--k", "inputs": "--inputs", "holdout": "--holdout", "rand
                  "effects": "--effects"}
 _FLAGS = {
     "fit": _METHOD_FLAGS,
+    "rollout": {"n_samples": "--samples", "band": "--band", "test": "--test"},
+    "score": {"test": "--test", "windows": "--windows"},
+    "plot fold": {"test": "--test"},
     "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out"},
     "predict": {"n_samples": "--samples", "random_state": "--seed", "band": "--band"},
     "diagnose": {"effects": "--effects", "threshold": "--threshold", "alpha": "--alpha", "move": "--move",

@@ -80,7 +80,7 @@ def summary(results: Path) -> str:
     lines += [f"ISO table:        {results / 'iso_table.csv'}",
               f"Tables (md, tex): {results / 'tables'}",
               f"Summary figure:   {results / 'figures' / 'iso_summary.png'}",
-              f"Fold figures:     {results / 'folds'}/<inputs>-K<k>-<test>/**/<test>.png",
+              f"Fold figures:     {results / 'folds'}/<inputs>/K<k>/<test>/<test>.png",
               f"HTML report:      {results / 'report.html'}"]
     tracking = results / "tracking.json"
     if tracking.is_file():

@@ -7,7 +7,7 @@ import pytest
 
 from crashfuse.cli import main
 from crashfuse.errors import InputError
-from crashfuse.evaluation.loto import fold_settings
+from crashfuse.evaluation.fold import fold_settings
 from crashfuse.method.config import BIAS_SETTINGS, MODE_DEFAULTS, MethodConfig
 from crashfuse.method.mixture import GMMGPBias
 

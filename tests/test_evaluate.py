@@ -16,6 +16,7 @@ from crashfuse.io.campaign_write import write_campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import fit_model, load_model
+from crashfuse.evaluation.fold import band_coverage
 from crashfuse.evaluation.records import read_fold_json
 from crashfuse.method.rollout import predict
 from crashfuse.method.selection import choose
@@ -151,7 +152,7 @@ def test_band_coverage_closed_form():
     t = np.linspace(0, 0.1, 101)
     a = np.sin(40 * t)
     lo = np.where(t < 0.03, a - 1, a + 0.5)  # the first 30 samples of the 61 in 0-60 ms are inside
-    cov, n = ev.band_coverage(t, a, t, lo, lo + 2)
+    cov, n = band_coverage(t, a, t, lo, lo + 2)
     assert n == 61 and cov == pytest.approx(30 / 61)
 
 

@@ -116,18 +116,18 @@ def generated(tmp_path_factory):
     """A working directory where the workflow has generated the default (paper) campaign."""
     workdir = tmp_path_factory.mktemp("workflow")
     before = job_counts(snakemake(workdir, "-n").stdout)
-    assert before["campaign"] == 1 and "fold" not in before  # the checkpoint decides the folds
+    assert before["campaign"] == 1 and "train" not in before  # the checkpoint decides the folds
     snakemake(workdir, "--cores", "1", "--until", "campaign")
     return workdir
 
 
-def test_default_dag_has_a_fold_per_test_k_and_input_mode(generated):
+def test_default_dag_has_the_method_steps_per_test_k_and_input_mode(generated):
+    """Each fold is four jobs: train -> rollout -> score, and its figure."""
     counts = job_counts(snakemake(generated, "-n").stdout)
     conditions = pd.read_csv(generated / "results" / "paper" / "conditions.csv")
     n_tests = int((conditions["source"] == "test").sum())
     assert n_tests == 11
-    assert counts["fold"] == n_tests * 3 * 2
-    assert "fold_figure" not in counts
+    assert {counts[r] for r in ("train", "rollout", "score", "figure")} == {n_tests * 3 * 2}
     assert {counts[r] for r in ("prepare", "aggregate", "tables", "summary_figure", "track", "all")} == {1}
     assert "campaign" not in counts
 
@@ -136,7 +136,7 @@ def test_selected_tests_and_no_tracking(generated, tmp_path):
     config = write_config(tmp_path / "c.yaml", tests=["T03", "T10"], ks=[2],
                           tracking={"enabled": False})
     counts = job_counts(snakemake(generated, "-n", configfile=config).stdout)
-    assert counts["fold"] == 2 * 1 * 2
+    assert counts["train"] == 2 * 1 * 2
     assert "track" not in counts
 
 
@@ -162,7 +162,7 @@ def test_user_campaign_folds_come_from_its_conditions(tmp_path):
     campaign = _conditions(tmp_path / "lab", ["A1", "A2", "A3", "A4"])
     config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)}, ks=[1, 2])
     counts = job_counts(snakemake(tmp_path, "-n", configfile=config).stdout)
-    assert counts["fold"] == 4 * 2 * 2
+    assert counts["train"] == 4 * 2 * 2
     assert "campaign" not in counts
 
 
@@ -245,11 +245,17 @@ def test_end_to_end_on_the_test_config(tmp_path):
     again = snakemake(tmp_path, "-n", configfile=TEST_CONFIG)
     assert "Nothing to be done" in again.stdout + again.stderr
 
+    n_folds = len(config["tests"]) * len(config["ks"]) * len(config["inputs"])
     changed = dict(config, method={**config["method"], "samples": config["method"]["samples"] + 1})
     (tmp_path / "changed.yaml").write_text(yaml.safe_dump(changed))
     counts = job_counts(snakemake(tmp_path, "-n", configfile=tmp_path / "changed.yaml").stdout)
-    n_folds = len(config["tests"]) * len(config["ks"]) * len(config["inputs"])
-    assert counts["fold"] == n_folds and "prepare" not in counts and "campaign" not in counts
+    assert counts["rollout"] == counts["score"] == counts["figure"] == n_folds
+    assert not {"train", "prepare", "campaign", "diagnose"} & set(counts)  # samples: no refit
+    windows = dict(config, scoring={"windows": ["0-30", "0-60"]})
+    (tmp_path / "windows.yaml").write_text(yaml.safe_dump(windows))
+    counts = job_counts(snakemake(tmp_path, "-n", configfile=tmp_path / "windows.yaml").stdout)
+    assert counts["score"] == n_folds
+    assert not {"train", "rollout", "figure", "prepare", "campaign"} & set(counts)  # windows: only the scores
 
     uri = dict(config, tracking={"enabled": True, "uri": f"sqlite:///{tmp_path / 'other.db'}"})
     (tmp_path / "uri.yaml").write_text(yaml.safe_dump(uri))

@@ -28,22 +28,20 @@ import pandas as pd
 from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import (AUTO, BASELINE, COLUMNS, SCORES, WINDOWS, effects_label, model_label,
-                                           window_bounds)
-from crashfuse.evaluation.records import FoldRecord, fold_folder, write_fold_json
+from crashfuse.evaluation.iso_table import AUTO, COLUMNS, effects_label
+from crashfuse.evaluation.fold import cae_pulse, rollout_fold, score_fold
+from crashfuse.evaluation.fold import cae_rows as fold_cae_rows
+from crashfuse.evaluation.records import fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
-from crashfuse.signals.iso18571 import iso_score
-from crashfuse.method.config import BIAS_SETTINGS, MethodConfig
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.hybrid import fit_physics
 from crashfuse.method.model import fit_model
-from crashfuse.method.projection import BRANCHES, INPUTS
-from crashfuse.method.rollout import predict
-from crashfuse.method.selection import choose, inner_error
+from crashfuse.method.projection import INPUTS
+from crashfuse.method.selection import choose
 from crashfuse.method.surrogate import CAESurrogate
-from crashfuse.units import G0, MS
+from crashfuse.units import G0
 
-COVERAGE_WINDOW_MS = (0, 60)
 COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "coverage_latent", "n_points", "extrapolation",
                     "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s", "inner_error"]
 
@@ -146,7 +144,7 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         say("auto: " + ", ".join(f"{r['coverage']['test_id']} {r['record'].settings['chosen']}" for r in chosen))
         results += chosen
     modes = [*inputs, AUTO] if auto else inputs
-    cae_rows = [row for t in tests for mode in modes for row in _cae_rows(campaign, surrogate, t, mode)]
+    cae_rows = [row for t in tests for mode in modes for row in fold_cae_rows(campaign, surrogate, t, mode)]
     iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=list(COLUMNS))
     coverage = pd.DataFrame([res["coverage"] for res in results], columns=COVERAGE_COLUMNS)
     keys = [(r["coverage"]["inputs"], r["coverage"]["model"], r["coverage"]["test_id"]) for r in results]
@@ -244,44 +242,19 @@ def _load_shared(path):
 
 def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, inner=False) -> dict:
     """Fit ``config`` without ``test_id`` (with the hybrid's ``physics`` fitted without it, if any),
-    predict its condition, rate and measure the band coverage; with ``inner``, the fit's inner error too."""
-    t0 = time.perf_counter()
-    mode, k, random_state = config.inputs, config.k, config.random_state
+    roll out its condition and score it (:mod:`crashfuse.evaluation.fold`, the workflow's three steps in one
+    process); with ``inner``, the fit's inner error too."""
     model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics)
-    t1 = time.perf_counter()
-    inner_mse = inner_error(model, campaign) if inner else None
-    test = campaign.pulses[test_id].after_contact()
-    pred = predict(model, test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
-                   test.meta.get("drive"), n_samples=n_samples, random_state=random_state,
-                   duration=float(test.time[-1]), dt=test.dt, band=band)
-    t2 = time.perf_counter()
-    name = model_label(k, effects_label(config.effects))
-    iso = [_iso_row(test, pred.time, pred.decel, test_id, mode, name, w) for w in WINDOWS]
+    pred, facts = rollout_fold(model, campaign, test_id, n_samples, band, inner)
     frame = pred.frame()
-    frame["test_decel_g"] = np.interp(pred.time, test.time, test.decel) / G0
-    cov, n = band_coverage(test.time, test.decel, pred.time, pred.decel_lo, pred.decel_hi)
-    cov_latent, _ = band_coverage(test.time, test.decel, pred.time, pred.decel_latent_lo, pred.decel_latent_hi)
-    coverage = dict(test_id=test_id, inputs=mode, model=name, coverage=cov, coverage_latent=cov_latent,
-                    n_points=n, extrapolation=pred.extrapolation["any"],
-                    n_gps_loading=_n_gps(model, "loading"), n_gps_unloading=_n_gps(model, "unloading"),
-                    cluster_switches=cluster_switches(model, pred), fit_s=t1 - t0, predict_s=t2 - t1,
-                    inner_error=inner_mse)
-    record = FoldRecord(
-        test_id=test_id, inputs=mode, k=int(k), seed=int(random_state),
-        campaign={"name": campaign.root.name if campaign.root else "campaign", "hash": model.campaign_hash},
-        conditions={"v0_mps": test.v0, "front_weight_kg": test.front_weight, "rear_weight_kg": test.rear_weight,
-                    "powertrain": str(test.meta.get("powertrain")), "drive": str(test.meta.get("drive"))},
-        settings={**fold_settings(model.config, n_samples), "band": band, **_chosen(model)},
-        iso={row["window_ms"]: {s: row[s] for s in SCORES} for row in iso},
-        metrics={"coverage_95_0_60": cov, "coverage_latent_95_0_60": cov_latent, "fit_seconds": t1 - t0,
-                 "predict_seconds": t2 - t1,
-                 "cluster_switches": float(coverage["cluster_switches"]),
-                 "n_gps_loading": float(coverage["n_gps_loading"]),
-                 "n_gps_unloading": float(coverage["n_gps_unloading"]),
-                 "extrapolation": float(pred.extrapolation["any"])},
-        figures=[f"{test_id}.png"], prediction=f"{test_id}_prediction.csv",
-    )
-    return {"iso": iso, "coverage": coverage, "frame": frame, "record": record}
+    scored = score_fold(campaign, test_id, frame, facts, cae=cae_pulse(campaign, surrogate, test_id))
+    frame["test_decel_g"] = np.interp(pred.time, *_test_decel(campaign, test_id)) / G0
+    return {"iso": scored["iso"], "coverage": scored["coverage"], "frame": frame, "record": scored["record"]}
+
+
+def _test_decel(campaign, test_id):
+    test = campaign.pulses[test_id].after_contact()
+    return test.time, test.decel
 
 
 def _auto_fold(candidates: list, inputs: list) -> dict:
@@ -303,99 +276,6 @@ def _auto_fold(candidates: list, inputs: list) -> dict:
         metrics={**won["record"].metrics, "inner_error_mps2_sq": pick.scores[pick.index]})
     return {"iso": [{**row, **relabel} for row in won["iso"]], "coverage": {**won["coverage"], **relabel},
             "frame": won["frame"], "record": record}
-
-
-def fold_settings(config: MethodConfig, n_samples: int) -> dict:
-    """A fold's settings as the fold JSON's scalars (docs/tracking.md).
-
-    K, the input mode and the seed have their own fields there. The GMMGPBias settings appear
-    only where they differ from the bias model's defaults, as ``bias_<name>`` (tuples as text).
-    """
-    own = {"k", "inputs", "random_state", *BIAS_SETTINGS}
-    flat = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in own}
-    flat["effects"] = effects_label(config.effects)
-    flat.update({f"bias_{k}": v if isinstance(v, (str, bool, int, float)) or v is None else str(v)
-                 for k, v in config.changed_bias_settings().items()})
-    return {**flat, "n_samples": int(n_samples)}
-
-
-def _chosen(model) -> dict:
-    """The hybrid's effects as fitted in this fold (``auto``: as chosen on its training tests)."""
-    return {} if model.physics is None else {"effects_fitted": effects_label(model.physics.effects)}
-
-
-def _n_gps(model, branch) -> int:
-    est = model.bias_.get(branch)
-    return 0 if est is None else len(est.gps_)
-
-
-def cluster_switches(model, pred) -> int:
-    """How often the most responsible GP changes along the mean-function rollout (both branches).
-
-    With ``assignment='select'`` each change is a switch of the bias function along the pulse.
-
-    Parameters
-    ----------
-    model : FittedModel
-    pred : Prediction
-
-    Returns
-    -------
-    int
-    """
-    path = pred.mean_path
-    cond = model.condition(**pred.condition)
-    count = 0
-    for branch in BRANCHES:
-        est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
-        if est is None or on.sum() < 2:
-            continue
-        resp = est.predict_responsibilities(model.features(branch, x, v, cond))
-        count += int(np.count_nonzero(np.diff(np.argmax(resp, axis=1))))
-    return count
-
-
-def band_coverage(t_test, a_test, t_pred, lo, hi, window_ms=COVERAGE_WINDOW_MS) -> tuple[float, int]:
-    """Fraction of test samples in the window inside the band ``[lo, hi]`` (interpolated to their times).
-
-    Parameters
-    ----------
-    t_test, a_test : ndarray, shape (n,)
-        Held-out test time (s) and deceleration (m/s^2).
-    t_pred, lo, hi : ndarray, shape (m,)
-        Prediction time (s) and the band's lower and upper deceleration (m/s^2).
-    window_ms : (float, float)
-
-    Returns
-    -------
-    coverage : float
-    n_points : int
-    """
-    inside = (t_test >= window_ms[0] * MS - 1e-12) & (t_test <= window_ms[1] * MS + 1e-12)
-    t, a = t_test[inside], a_test[inside]
-    ok = (a >= np.interp(t, t_pred, lo)) & (a <= np.interp(t, t_pred, hi))
-    return float(ok.mean()), int(ok.size)
-
-
-def _iso_row(test, t_cmp, cmp, test_id, mode, name, window: str) -> dict:
-    start, end = window_bounds(window)
-    s = iso_score(test.time, test.decel, t_cmp, cmp, start * MS, end * MS)
-    return dict(test_id=test_id, inputs=mode, model=name, window_ms=window, **s)
-
-
-def _cae_rows(campaign, surrogate, test_id, mode) -> list[dict]:
-    """The CAE rows of one test: its companion run, or the surrogate's zero-bias pulse where it has none."""
-    test = campaign.pulses[test_id].after_contact()
-    cae = campaign.companion(test_id)
-    if cae is not None:
-        cae = cae.after_contact()
-        t, a = cae.time, cae.decel
-    else:
-        curve = surrogate.curve(test.v0, test.front_weight, test.rear_weight, test.meta.get("powertrain"),
-                                test.meta.get("drive"))
-        traj = curve.rollout(test.dt, test.time.size - 1)
-        t, a = traj.time, traj.decel[0]
-    return [_iso_row(test, t, a, test_id, mode, BASELINE, w) for w in WINDOWS]
 
 
 def write_evaluation(result: Evaluation, out: str | os.PathLike) -> Path:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+import time
 
 import numpy as np
 
@@ -103,6 +104,8 @@ class FittedModel:
     physics : PhysicsFirst or None
         The physics-first hybrid's effect laws (``config.effects``), fitted on the training tests;
         every CAE curve of the model is then CAE + effects (:meth:`cae_curve`).
+    fit_seconds : float
+        Wall time of the fit (the surrogate's excluded when it was given).
     """
 
     surrogate: CAESurrogate
@@ -119,6 +122,7 @@ class FittedModel:
     campaign_hash: str
     version: str = crashfuse.__version__
     physics: PhysicsFirst | None = None
+    fit_seconds: float = 0.0
 
     @property
     def inputs(self) -> str:
@@ -325,6 +329,7 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
     ValueError
         ``physics`` fitted on other tests or other effects than this fit's.
     """
+    t0 = time.perf_counter()
     if not isinstance(config, MethodConfig):
         raise TypeError(f"expected a MethodConfig, got {type(config).__name__}")
     if not campaign.cae:
@@ -349,6 +354,7 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         groups={b: sorted(set(data.branch(b).groups)) for b in BRANCHES}, missing=dict(data.missing),
         ranges=_ranges(campaign, train, data), companions=_companions(campaign),
         categories=dict(data.categories), campaign_hash=campaign.content_hash(), physics=physics,
+        fit_seconds=time.perf_counter() - t0,
     )
 
 

@@ -25,12 +25,11 @@ from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import AUTO, BASELINE, ROW_INPUTS, SCORES, model_order, model_tag, window_bounds
 from crashfuse.evaluation.records import fold_folder
 from crashfuse.io.atomic import atomic_path
-from crashfuse.io.tables import read_table
+from crashfuse.io.prediction import read_prediction_csv
 from crashfuse.reporting.tables import natural_key, read_iso_table, table2, table_file
 from crashfuse.signals.pulse import Pulse
 from crashfuse.units import G0, MM, MPH, MS
 
-PREDICTION_COLUMNS = ("time_s", "decel_g", "decel_lo_g", "decel_hi_g", "cae_decel_g")
 T_END = 0.1  # s, the span of the paper's figures
 DPI = 120
 # Colour-blind safe (Okabe-Ito): test black, CAE vermillion, corrected blue.
@@ -38,47 +37,6 @@ COLORS = {"test": "black", "cae": "#D55E00", "mean": "#0072B2", "band": "#56B4E9
 MODEL_COLORS = ["#7F7F7F", "#56B4E9", "#009E73", "#E69F00", "#CC79A7", "#0072B2", "#F0E442"]
 # Significant regions of a gap diagnosis: test above CAE warm, below cool.
 GAP_SHADES = {1: "#E69F00", -1: "#56B4E9"}
-
-
-def read_prediction_csv(path: str | os.PathLike) -> pd.DataFrame:
-    """Read and validate a fold's prediction CSV.
-
-    Parameters
-    ----------
-    path : str or PathLike
-        CSV with at least ``time_s, decel_g, decel_lo_g, decel_hi_g, cae_decel_g`` (deceleration
-        in g, positive while slowing); other columns are kept.
-
-    Returns
-    -------
-    pandas.DataFrame, shape (n_samples, >= 5)
-        The table, with the five columns as floats.
-
-    Raises
-    ------
-    InputError
-        Missing file or column, non-finite value, time not strictly increasing, or a band with
-        ``decel_lo_g > decel_hi_g``.
-    """
-    path = Path(path)
-    frame = read_table(path, PREDICTION_COLUMNS, "a prediction CSV")
-    if len(frame) < 2:
-        raise InputError(f"expected at least 2 samples, got {len(frame)}", path, "time_s")
-    for col in PREDICTION_COLUMNS:
-        values = pd.to_numeric(frame[col], errors="coerce").to_numpy(float)
-        bad = np.flatnonzero(~np.isfinite(values))
-        if bad.size:
-            raise InputError(f"expected finite numbers, got {frame[col].iloc[bad[0]]!r} in data row {bad[0] + 1}",
-                             path, col)
-        frame[col] = values
-    step = np.diff(frame["time_s"].to_numpy())
-    if np.any(step <= 0):
-        raise InputError(f"expected strictly increasing time, not at data row {int(np.argmin(step > 0)) + 2}",
-                         path, "time_s")
-    crossed = np.flatnonzero(frame["decel_lo_g"].to_numpy() > frame["decel_hi_g"].to_numpy())
-    if crossed.size:
-        raise InputError(f"expected decel_lo_g <= decel_hi_g, not at data row {crossed[0] + 1}", path, "decel_lo_g")
-    return frame
 
 
 def fold_figure(test: Pulse, prediction: pd.DataFrame, title: str | None = None) -> Figure:

@@ -4,7 +4,7 @@
 
 rule aggregate:
     input:
-        tables=lambda wildcards: fold_files(fold_dir("iso_table.csv")),
+        tables=lambda wildcards: fold_files(fold_path("iso_table.csv")),
     output:
         report(f"{RESULTS}/iso_table.csv", category="Table"),
     log:

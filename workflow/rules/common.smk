@@ -20,12 +20,12 @@ METHOD = config["method"]
 
 
 def method_args():
-    """The folds' method options; a param of their jobs, so that changing one reruns the folds."""
+    """The fits' method options; a param of the train jobs, so that changing one reruns the fits
+    (the Monte Carlo samples are the rollouts' param)."""
     flags = [
         f"--seed {METHOD['seed']}",
         f"--n-grid {METHOD['n_grid']}",
         f"--assignment {METHOD['assignment']}",
-        f"--samples {METHOD['samples']}",
     ]
     flags += ["--use-companion"] if METHOD["use_companion"] else []
     flags += ["--extra-inputs"] if METHOD["extra_inputs"] else []
@@ -35,14 +35,10 @@ def method_args():
     return " ".join(flags)
 
 
-def fold_dir(name=""):
-    """`<results>/folds/{inputs}-K{k}-{test}/<name>`: what one fold's `crashfuse evaluate` writes, wildcards kept."""
-    return f"{RESULTS}/folds/{{inputs}}-K{{k}}-{{test}}/{name}"
-
-
 def fold_path(name):
-    """A file of one fold beside its fold JSON: `crashfuse evaluate` nests them as <inputs>/K<k>/<test>/."""
-    return fold_dir(f"{{inputs}}/K{{k}}/{{test}}/{name}")
+    """`<results>/folds/{inputs}/K{k}/{test}/<name>`: a file of one fold (model, prediction, rollout facts,
+    ISO rows, coverage, fold JSON, figure), wildcards kept."""
+    return f"{RESULTS}/folds/{{inputs}}/K{{k}}/{{test}}/{name}"
 
 
 def read_tests(campaign_dir):
