@@ -18,9 +18,11 @@ onset_s       the onset correction's input: its base model's held-out residuals 
 
 rows (bias rows, both branches) and peak_GB (the process's peak RSS) follow; the last lines give
 the log-log slope of each column between the smallest and the largest size (time ~ N^slope).
+``--exact`` fits as before the caps: every row conditioned on, one scatter refit per test on
+every other row (``max_condition_points=None``, ``scatter_needs(max_folds=None, max_rows=None)``).
 Every figure is measured in this run.
 
-    .venv/bin/python benchmarks/bench_scaling.py [--sizes 11 22 44 88] [--n-cae 400] [--json]
+    .venv/bin/python benchmarks/bench_scaling.py [--sizes 11 22 44 88] [--n-cae 400] [--exact] [--json]
 """
 
 from __future__ import annotations
@@ -53,8 +55,12 @@ def campaign(n_tests: int, n_cae: int):
     return build(resolve("withheld", ["none"]), seed=0, n_cae=n_cae, matrix="wide", n_tests=n_tests)[0]
 
 
-def measure(n_tests: int, n_cae: int, k: int, inputs: str, n_samples: int) -> dict:
+def measure(n_tests: int, n_cae: int, k: int, inputs: str, n_samples: int, exact: bool = False) -> dict:
     """One size, in this process: the figures of one row."""
+    import functools
+
+    import crashfuse.gp.kriging
+    from crashfuse.gp.grouped import scatter_needs
     from crashfuse.method.config import MethodConfig
     from crashfuse.method.model import fit_model, training_data
     from crashfuse.method.rollout import predict
@@ -64,7 +70,9 @@ def measure(n_tests: int, n_cae: int, k: int, inputs: str, n_samples: int) -> di
     t0 = time.perf_counter()
     surrogate = CAESurrogate(random_state=0).fit(camp)
     t1 = time.perf_counter()
-    config = MethodConfig(k=k, inputs=inputs)
+    config = MethodConfig(k=k, inputs=inputs, **({"max_condition_points": None} if exact else {}))
+    if exact:
+        crashfuse.gp.kriging.scatter_needs = functools.partial(scatter_needs, max_folds=None, max_rows=None)
     profile = cProfile.Profile()
     profile.enable()
     model = fit_model(camp, config, surrogate=surrogate)
@@ -105,16 +113,17 @@ def main(argv=None) -> int:
     ap.add_argument("--k", type=int, default=1)
     ap.add_argument("--inputs", default="state")
     ap.add_argument("--samples", type=int, default=200)
+    ap.add_argument("--exact", action="store_true", help="no caps: the fit as before them")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)  # a worker: one size, JSON out
     args = ap.parse_args(argv)
     if args.one is not None:
-        print(json.dumps(measure(args.one, args.n_cae, args.k, args.inputs, args.samples)))
+        print(json.dumps(measure(args.one, args.n_cae, args.k, args.inputs, args.samples, args.exact)))
         return 0
     rows = []
     for n in args.sizes:
         cmd = [sys.executable, __file__, "--one", str(n), "--n-cae", str(args.n_cae), "--k", str(args.k),
-               "--inputs", args.inputs, "--samples", str(args.samples)]
+               "--inputs", args.inputs, "--samples", str(args.samples), *(["--exact"] if args.exact else [])]
         rows.append(json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1]))
         if not args.json:
             print(" ".join(f"{c}={rows[-1][c]:.3g}" for c in COLUMNS), flush=True)
