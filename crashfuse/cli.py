@@ -224,6 +224,25 @@ def _score(args) -> int:
     return 0
 
 
+def _auto(args) -> int:
+    import shutil
+
+    from crashfuse.evaluation.fold import ROLLOUT_SUFFIX, auto_facts, read_rollout_facts, write_rollout_facts
+    from crashfuse.io.atomic import atomic_path
+
+    paths = [Path(p) for p in args.facts]
+    bad = [p for p in paths if not p.name.endswith(ROLLOUT_SUFFIX)]
+    if bad:
+        raise InputError(f"expected rollout facts files (*{ROLLOUT_SUFFIX})", bad[0], "facts")
+    index, facts = auto_facts([read_rollout_facts(p) for p in paths], args.inputs)
+    test, out = facts["test_id"], Path(args.out)
+    with atomic_path(out / f"{test}_prediction.csv") as tmp:
+        shutil.copyfile(paths[index].parent / f"{test}_prediction.csv", tmp)
+    write_rollout_facts(out / f"{test}{ROLLOUT_SUFFIX}", facts)
+    print(f"{test}: auto chose {facts['settings']['chosen']} ({facts['settings']['candidates']})")
+    return 0
+
+
 def _known_test(campaign, test_id) -> None:
     if test_id not in campaign.tests:
         raise InputError(f"expected a test of the campaign ({', '.join(campaign.tests)}), got {test_id!r}",
@@ -412,7 +431,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="crashfuse", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (_add_pulse_metrics, _add_iso_score, _add_barrier_model, _add_world, _add_fit, _add_predict,
-                _add_rollout, _add_score, _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report,
+                _add_rollout, _add_auto, _add_score, _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report,
                 _add_plot, _add_track):
         add(sub)
     return p
@@ -579,6 +598,16 @@ def _add_rollout(sub) -> None:
     s.add_argument("--out", required=True,
                    help="fold folder for <test>_prediction.csv and <test>.rollout.json")
     s.set_defaults(func=_rollout)
+
+
+def _add_auto(sub) -> None:
+    s = sub.add_parser("auto", help="the auto model's fold: of one test's candidate rollouts, the one with the "
+                                    "smallest inner error (simplest first)")
+    s.add_argument("facts", nargs="+", help="the candidates' <test>.rollout.json files (from 'rollout --inner')")
+    s.add_argument("--inputs", nargs="+", choices=("paper", "state"), default=["paper", "state"],
+                   help="order of the input modes among candidates of one K (default paper state)")
+    s.add_argument("--out", required=True, help="fold folder for the chosen <test>_prediction.csv and facts")
+    s.set_defaults(func=_auto)
 
 
 def _add_score(sub) -> None:

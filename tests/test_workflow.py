@@ -122,12 +122,14 @@ def generated(tmp_path_factory):
 
 
 def test_default_dag_has_the_method_steps_per_test_k_and_input_mode(generated):
-    """Each fold is four jobs: train -> rollout -> score, and its figure."""
+    """Each fold is four jobs: train -> rollout -> score, and its figure; each test's auto model one more
+    (its choice), then score and figure."""
     counts = job_counts(snakemake(generated, "-n").stdout)
     conditions = pd.read_csv(generated / "results" / "paper" / "conditions.csv")
     n_tests = int((conditions["source"] == "test").sum())
     assert n_tests == 11
-    assert {counts[r] for r in ("train", "rollout", "score", "figure")} == {n_tests * 3 * 2}
+    assert counts["train"] == counts["rollout"] == n_tests * 3 * 2 and counts["auto"] == n_tests
+    assert counts["score"] == counts["figure"] == n_tests * (3 * 2 + 1)
     assert {counts[r] for r in ("prepare", "aggregate", "tables", "summary_figure", "track", "all")} == {1}
     assert "campaign" not in counts
 
@@ -225,16 +227,23 @@ def test_end_to_end_on_the_test_config(tmp_path):
     results = tmp_path / config["results"]
     iso = pd.read_csv(results / "iso_table.csv", dtype={"test_id": str})
     assert sorted(iso["test_id"].unique()) == sorted(config["tests"])
-    assert sorted(iso["model"].unique()) == ["CAE"] + [f"K{k}" for k in config["ks"]]
-    assert len(iso) == len(config["tests"]) * len(config["inputs"]) * (1 + len(config["ks"])) * 3
+    assert sorted(iso["model"].unique()) == ["CAE"] + [f"K{k}" for k in config["ks"]] + ["auto"]
+    n_tests = len(config["tests"])
+    assert len(iso) == n_tests * (len(config["inputs"]) * (1 + len(config["ks"])) + 2) * 3  # auto: CAE and auto
     assert iso["overall"].between(0, 1).all()
+    for test in config["tests"]:  # the auto rows are the rows of the candidate its auto job chose
+        facts = json.loads((results / "folds" / "auto" / "auto" / test / f"{test}.rollout.json").read_text())
+        inputs, model = facts["settings"]["chosen"].split()
+        rows = [iso[(iso.test_id == test) & (iso.inputs == i) & (iso.model == m)].overall.tolist()
+                for i, m in (("auto", "auto"), (inputs, model))]
+        assert rows[0] == rows[1]
     assert (results / "report.html").stat().st_size > 0
     assert str(results / "report.html") in done.stdout
     logged = json.loads((results / "tracking.json").read_text())
-    assert len(logged["folds"]) == len(config["tests"]) * len(config["ks"]) * len(config["inputs"])
+    assert len(logged["folds"]) == n_tests * (len(config["ks"]) * len(config["inputs"]) + 1)
     assert logged["tracking_uri"] == f"sqlite:///{tmp_path / 'mlflow.db'}"
     runs = MlflowClient(logged["tracking_uri"]).search_runs([logged["experiment_id"]])
-    n_parents = len(config["ks"]) * len(config["inputs"])
+    n_parents = len(config["ks"]) * len(config["inputs"]) + 1
     assert len(runs) == n_parents + len(logged["folds"])
     assert sum(r.data.tags.get("crashfuse.role") == "fold" for r in runs) == len(logged["folds"])
 
@@ -245,11 +254,11 @@ def test_end_to_end_on_the_test_config(tmp_path):
     again = snakemake(tmp_path, "-n", configfile=TEST_CONFIG)
     assert "Nothing to be done" in again.stdout + again.stderr
 
-    n_folds = len(config["tests"]) * len(config["ks"]) * len(config["inputs"])
+    n_folds = n_tests * (len(config["ks"]) * len(config["inputs"]) + 1)  # scored and drawn; auto included
     changed = dict(config, method={**config["method"], "samples": config["method"]["samples"] + 1})
     (tmp_path / "changed.yaml").write_text(yaml.safe_dump(changed))
     counts = job_counts(snakemake(tmp_path, "-n", configfile=tmp_path / "changed.yaml").stdout)
-    assert counts["rollout"] == counts["score"] == counts["figure"] == n_folds
+    assert counts["rollout"] == n_folds - n_tests and counts["score"] == counts["figure"] == n_folds
     assert not {"train", "prepare", "campaign", "diagnose"} & set(counts)  # samples: no refit
     windows = dict(config, scoring={"windows": ["0-30", "0-60"]})
     (tmp_path / "windows.yaml").write_text(yaml.safe_dump(windows))

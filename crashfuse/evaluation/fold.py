@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import BASELINE, SCORES, WINDOWS, effects_label, model_label, window_bounds
+from crashfuse.evaluation.iso_table import AUTO, BASELINE, SCORES, WINDOWS, effects_label, model_label, window_bounds
 from crashfuse.evaluation.records import FoldRecord
 from crashfuse.io.atomic import write_text
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.units import G0, MS
 
-__all__ = ["ROLLOUT_SUFFIX", "rollout_fold", "write_rollout_facts", "read_rollout_facts", "score_fold",
+__all__ = ["ROLLOUT_SUFFIX", "rollout_fold", "write_rollout_facts", "read_rollout_facts", "auto_facts", "score_fold",
            "cae_rows", "band_coverage", "COVERAGE_WINDOW_MS"]
 
 ROLLOUT_SUFFIX = ".rollout.json"
@@ -156,6 +156,44 @@ def read_rollout_facts(path: str | os.PathLike) -> dict:
     if missing:
         raise InputError("expected the keys of a rollout's facts", path, missing[0])
     return facts
+
+
+def auto_facts(candidates: list, inputs=("paper", "state")) -> tuple[int, dict]:
+    """The ``auto`` model's rollout facts for one held-out test: the candidate's that
+    :func:`crashfuse.method.selection.choose` picks by inner error, relabelled.
+
+    Parameters
+    ----------
+    candidates : list of dict
+        The rollout facts (:func:`rollout_fold` with ``inner``) of every candidate of the test.
+    inputs : sequence of str
+        The order of the input modes among candidates of one K (simplest first: K ascending, then this).
+
+    Returns
+    -------
+    index : int
+        Position of the chosen candidate in ``candidates``.
+    facts : dict
+        Its facts with ``inputs`` and ``model`` = ``auto``, the settings ``chosen`` (``<inputs> <model>``)
+        and ``candidates`` (every candidate's inner error as text) and the metric ``inner_error_mps2_sq``
+        (the chosen one's; a candidate's may be infinite, which a metric cannot be).
+    """
+    from crashfuse.method.selection import choose
+
+    tests = {c["test_id"] for c in candidates}
+    missing = [c["inputs"] + " " + c["model"] for c in candidates if "inner_error" not in c["metrics"]]
+    if len(tests) != 1 or missing:
+        raise InputError(f"expected the rollouts of one test, each with its inner error (rollout --inner); got tests "
+                         f"{sorted(tests)}, without it: {missing}", field="candidates")
+    order = sorted(range(len(candidates)), key=lambda i: (candidates[i]["k"], list(inputs).index(candidates[i]["inputs"])))
+    pick = choose([candidates[i]["metrics"]["inner_error"] for i in order])
+    names = [f"{candidates[i]['inputs']} {candidates[i]['model']}" for i in order]
+    won = candidates[order[pick.index]]
+    facts = {**won, "inputs": AUTO, "model": AUTO,
+             "settings": {**won["settings"], "chosen": names[pick.index],
+                          "candidates": "; ".join(f"{n}: {e:.6g}" for n, e in zip(names, pick.scores))},
+             "metrics": {**won["metrics"], "inner_error_mps2_sq": pick.scores[pick.index]}}
+    return order[pick.index], facts
 
 
 def score_fold(campaign, test_id: str, frame, facts: dict, windows=WINDOWS, cae=None) -> dict:

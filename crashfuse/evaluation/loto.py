@@ -29,7 +29,7 @@ from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import AUTO, COLUMNS, effects_label
-from crashfuse.evaluation.fold import cae_pulse, rollout_fold, score_fold
+from crashfuse.evaluation.fold import auto_facts, cae_pulse, rollout_fold, score_fold
 from crashfuse.evaluation.fold import cae_rows as fold_cae_rows
 from crashfuse.evaluation.records import fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
@@ -38,7 +38,6 @@ from crashfuse.method.config import MethodConfig
 from crashfuse.method.hybrid import fit_physics
 from crashfuse.method.model import fit_model
 from crashfuse.method.projection import INPUTS
-from crashfuse.method.selection import choose
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0
 
@@ -140,7 +139,8 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
             f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
             f"fit {cov['fit_s']:.1f} s")
     if auto:
-        chosen = [_auto_fold([r for r in results if r["coverage"]["test_id"] == t], inputs) for t in tests]
+        chosen = [_auto_fold(campaign, surrogate, [r for r in results if r["coverage"]["test_id"] == t], inputs)
+                  for t in tests]
         say("auto: " + ", ".join(f"{r['coverage']['test_id']} {r['record'].settings['chosen']}" for r in chosen))
         results += chosen
     modes = [*inputs, AUTO] if auto else inputs
@@ -249,7 +249,8 @@ def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples
     frame = pred.frame()
     scored = score_fold(campaign, test_id, frame, facts, cae=cae_pulse(campaign, surrogate, test_id))
     frame["test_decel_g"] = np.interp(pred.time, *_test_decel(campaign, test_id)) / G0
-    return {"iso": scored["iso"], "coverage": scored["coverage"], "frame": frame, "record": scored["record"]}
+    return {"iso": scored["iso"], "coverage": scored["coverage"], "frame": frame, "record": scored["record"],
+            "facts": facts}
 
 
 def _test_decel(campaign, test_id):
@@ -257,25 +258,13 @@ def _test_decel(campaign, test_id):
     return test.time, test.decel
 
 
-def _auto_fold(candidates: list, inputs: list) -> dict:
-    """The ``auto`` fold of one held-out test: a copy of the candidate fold :func:`choose` picks by inner error,
-    the candidates ordered simplest first (K ascending, then the order of ``inputs``).
-
-    The fold JSON keeps the chosen fold's K, settings and metrics and adds the settings ``chosen``
-    (``<inputs> <model>``) and ``candidates`` (every candidate's inner error as text) and the metric
-    ``inner_error_mps2_sq`` (the chosen one's; a candidate's may be infinite, which a metric cannot be).
-    """
-    candidates = sorted(candidates, key=lambda c: (c["record"].k, inputs.index(c["coverage"]["inputs"])))
-    pick = choose([c["coverage"]["inner_error"] for c in candidates])
-    won = candidates[pick.index]
-    names = [f"{c['coverage']['inputs']} {c['coverage']['model']}" for c in candidates]
-    relabel = {"inputs": AUTO, "model": AUTO}
-    record = dataclasses.replace(won["record"], inputs=AUTO, settings={
-        **won["record"].settings, "chosen": names[pick.index],
-        "candidates": "; ".join(f"{n}: {e:.6g}" for n, e in zip(names, pick.scores))},
-        metrics={**won["record"].metrics, "inner_error_mps2_sq": pick.scores[pick.index]})
-    return {"iso": [{**row, **relabel} for row in won["iso"]], "coverage": {**won["coverage"], **relabel},
-            "frame": won["frame"], "record": record}
+def _auto_fold(campaign, surrogate, candidates: list, inputs: list) -> dict:
+    """The ``auto`` fold of one held-out test: the candidate fold :func:`auto_facts` picks, scored under its label."""
+    index, facts = auto_facts([c["facts"] for c in candidates], inputs)
+    test_id, frame = facts["test_id"], candidates[index]["frame"]
+    scored = score_fold(campaign, test_id, frame, facts, cae=cae_pulse(campaign, surrogate, test_id))
+    return {"iso": scored["iso"], "coverage": scored["coverage"], "frame": frame, "record": scored["record"],
+            "facts": facts}
 
 
 def write_evaluation(result: Evaluation, out: str | os.PathLike) -> Path:

@@ -28,7 +28,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, model_order, model_tag, window_key
+from crashfuse.evaluation.iso_table import AUTO, BASELINE, ISO_TABLE, SCORES, model_order, model_tag, window_key
 from crashfuse.evaluation.records import CONDITIONS, FOLD_SUFFIX, FoldRecord, read_fold_json
 from crashfuse.reporting.tables import read_iso_table
 
@@ -280,16 +280,17 @@ def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = No
     for (inputs, model), group in _groups(folds).items():
         k = model_tag(model)  # the K tag: the cluster count, the hybrid's effects after it; or auto
         key = (PARENT, inputs, str(k), "")
-        tags = {**common, **dict(zip(KEY_TAGS, key)), "mlflow.runName": f"{inputs} K={k}"}
+        name = AUTO if model == AUTO else f"{inputs} K={k}"
+        tags = {**common, **dict(zip(KEY_TAGS, key)), "mlflow.runName": name}
         parent = _upsert(client, exp_id, existing.get(key, []), tags, _parent_params(group), _mean_metrics(group),
                          {"": [iso_file]})
-        out["parents"][f"{inputs}/K{k}"] = parent
+        out["parents"][f"{inputs}/{model}"] = parent
         for fold in group:
             key = (FOLD, inputs, str(k), fold.record.test_id)
             tags = {**common, **dict(zip(KEY_TAGS, key)), PARENT_RUN: parent,
-                    "mlflow.runName": f"{fold.record.test_id} {inputs} K={k}"}
+                    "mlflow.runName": f"{fold.record.test_id} {name}"}
             run = _upsert(client, exp_id, existing.get(key, []), tags, fold.params(), fold.metrics(), fold.files())
-            out["folds"][f"{inputs}/K{k}/{fold.record.test_id}"] = run
+            out["folds"][f"{inputs}/{model}/{fold.record.test_id}"] = run
     return out
 
 

@@ -18,10 +18,10 @@ rule tables:
         f"{RESULTS}/iso_table.csv",
     output:
         markdown=report(
-            expand(f"{RESULTS}/tables/table2_{{inputs}}.md", inputs=config["inputs"]),
+            expand(f"{RESULTS}/tables/table2_{{inputs}}.md", inputs=table_inputs()),
             category="Table",
         ),
-        latex=expand(f"{RESULTS}/tables/table2_{{inputs}}.tex", inputs=config["inputs"]),
+        latex=expand(f"{RESULTS}/tables/table2_{{inputs}}.tex", inputs=table_inputs()),
         summary=report(f"{RESULTS}/tables/summary.md", category="Table"),
         summary_csv=f"{RESULTS}/tables/summary.csv",
     params:

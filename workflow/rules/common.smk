@@ -36,9 +36,26 @@ def method_args():
 
 
 def fold_path(name):
-    """`<results>/folds/{inputs}/K{k}/{test}/<name>`: a file of one fold (model, prediction, rollout facts,
-    ISO rows, coverage, fold JSON, figure), wildcards kept."""
-    return f"{RESULTS}/folds/{{inputs}}/K{{k}}/{{test}}/{name}"
+    """`<results>/folds/{inputs}/{model}/{test}/<name>`: a file of one fold (model, prediction, rollout facts,
+    ISO rows, coverage, fold JSON, figure), wildcards kept; `model` is `K<k>`, or `auto` (inputs `auto`)."""
+    return f"{RESULTS}/folds/{{inputs}}/{{model}}/{{test}}/{name}"
+
+
+def table_inputs():
+    """The `inputs` labels of the ISO table: the config's input modes, and `auto` with the auto model."""
+    return [*config["inputs"], "auto"] if config["auto"] else config["inputs"]
+
+
+def fold_title(wildcards):
+    """A fold figure's title."""
+    if wildcards.model == "auto":
+        return f"{wildcards.test}: auto"
+    return f"{wildcards.test}: {wildcards.inputs} inputs, K = {wildcards.model[1:]}"
+
+
+def candidate_files(pattern, test):
+    """`pattern` of every (input mode, K) fold of one test: the auto model's candidates."""
+    return expand(fold_path(pattern), inputs=config["inputs"], model=[f"K{k}" for k in config["ks"]], test=test)
 
 
 def read_tests(campaign_dir):
@@ -73,9 +90,11 @@ def campaign_dir(wildcards=None):
 
 
 def fold_files(pattern):
-    """`pattern` expanded over every fold: config inputs x ks x the campaign's (selected) tests."""
+    """`pattern` expanded over every fold: config inputs x ks x the campaign's (selected) tests, and the
+    auto model's fold of each test with `auto`."""
     tests = read_tests(campaign_dir())
-    return expand(pattern, inputs=config["inputs"], k=config["ks"], test=tests)
+    out = expand(pattern, inputs=config["inputs"], model=[f"K{k}" for k in config["ks"]], test=tests)
+    return out + (expand(pattern, inputs="auto", model="auto", test=tests) if config["auto"] else [])
 
 
 def all_outputs(wildcards):

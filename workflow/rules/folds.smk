@@ -2,12 +2,14 @@
 # train (the bias models fitted without the test) -> rollout (its condition predicted, with the band)
 # -> score (ISO rows, band coverage, fold JSON) and figure. A change of the ISO windows reruns only
 # score; of the Monte Carlo samples, rollout and after; of a method setting, train and after. The
-# jobs of one fold share a group, so a cluster executor can run a fold's chain as one job.
+# jobs of one fold share a group, so a cluster executor can run a fold's chain as one job. With
+# `auto`, each test's `auto` job picks among its candidates' rollouts (inner error), and that
+# fold (inputs and model `auto`) is scored and drawn by the same rules.
 
 
 wildcard_constraints:
-    inputs="paper|state",
-    k=r"[1-9][0-9]*",
+    inputs="paper|state|auto",
+    model=r"K[1-9][0-9]*|auto",
     test=r"[^/]+",
 
 
@@ -17,16 +19,20 @@ rule train:
         surrogate=f"{RESULTS}/surrogate.cfmodel",
     output:
         fold_path("model.cfmodel"),
+    wildcard_constraints:
+        inputs="paper|state",
+        model=r"K[1-9][0-9]*",
     params:
+        k=lambda wildcards: wildcards.model[1:],
         method=method_args(),
     group:
         "fold"
     log:
-        f"{RESULTS}/logs/folds/{{inputs}}/K{{k}}/{{test}}/train.log",
+        f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/train.log",
     benchmark:
-        f"{RESULTS}/benchmarks/folds/{{inputs}}/K{{k}}/{{test}}/train.tsv"
+        f"{RESULTS}/benchmarks/folds/{{inputs}}/{{model}}/{{test}}/train.tsv"
     shell:
-        "crashfuse fit {input.campaign:q} --k {wildcards.k} --inputs {wildcards.inputs}"
+        "crashfuse fit {input.campaign:q} --k {params.k} --inputs {wildcards.inputs}"
         " --holdout {wildcards.test:q} --surrogate {input.surrogate:q} {params.method} --out {output:q}"
         " > {log:q} 2>&1"
 
@@ -38,18 +44,22 @@ rule rollout:
     output:
         prediction=fold_path("{test}_prediction.csv"),
         facts=fold_path("{test}.rollout.json"),
+    wildcard_constraints:
+        inputs="paper|state",
+        model=r"K[1-9][0-9]*",
     params:
         samples=METHOD["samples"],
+        inner="--inner" if config["auto"] else "",
         out=lambda wildcards, output: Path(output.facts).parent,
     group:
         "fold"
     log:
-        f"{RESULTS}/logs/folds/{{inputs}}/K{{k}}/{{test}}/rollout.log",
+        f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/rollout.log",
     benchmark:
-        f"{RESULTS}/benchmarks/folds/{{inputs}}/K{{k}}/{{test}}/rollout.tsv"
+        f"{RESULTS}/benchmarks/folds/{{inputs}}/{{model}}/{{test}}/rollout.tsv"
     shell:
         "crashfuse rollout {input.model:q} {input.campaign:q} --test {wildcards.test:q}"
-        " --samples {params.samples} --out {params.out:q} > {log:q} 2>&1"
+        " --samples {params.samples} {params.inner} --out {params.out:q} > {log:q} 2>&1"
 
 
 rule score:
@@ -68,7 +78,7 @@ rule score:
     group:
         "fold"
     log:
-        f"{RESULTS}/logs/folds/{{inputs}}/K{{k}}/{{test}}/score.log",
+        f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/score.log",
     shell:
         "crashfuse score {input.campaign:q} {params.out:q} --test {wildcards.test:q} --windows {params.windows}"
         " --surrogate {input.surrogate:q} --table-dir {params.out:q} > {log:q} 2>&1"
@@ -83,14 +93,29 @@ rule figure:
             fold_path("{test}.png"),
             category="Folds",
             subcategory="{inputs} inputs",
-            labels={"test": "{test}", "K": "{k}"},
+            labels={"test": "{test}", "model": "{model}"},
         ),
     params:
-        title="{test}: {inputs} inputs, K = {k}",
+        title=fold_title,
     group:
         "fold"
     log:
-        f"{RESULTS}/logs/folds/{{inputs}}/K{{k}}/{{test}}/figure.log",
+        f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/figure.log",
     shell:
         "crashfuse plot fold {input.campaign:q} {input.prediction:q} --test {wildcards.test:q}"
         " --title {params.title:q} --out {output:q} > {log:q} 2>&1"
+
+
+rule auto:
+    input:
+        lambda wildcards: candidate_files("{test}.rollout.json", wildcards.test),
+    output:
+        prediction=f"{RESULTS}/folds/auto/auto/{{test}}/{{test}}_prediction.csv",
+        facts=f"{RESULTS}/folds/auto/auto/{{test}}/{{test}}.rollout.json",
+    params:
+        inputs=" ".join(config["inputs"]),
+        out=lambda wildcards, output: Path(output.facts).parent,
+    log:
+        f"{RESULTS}/logs/folds/auto/auto/{{test}}/auto.log",
+    shell:
+        "crashfuse auto {input:q} --inputs {params.inputs} --out {params.out:q} > {log:q} 2>&1"
