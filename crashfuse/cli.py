@@ -201,14 +201,12 @@ def _score(args) -> int:
 
     from crashfuse.evaluation.fold import ROLLOUT_SUFFIX, cae_pulse, read_rollout_facts, score_fold
     from crashfuse.evaluation.iso_table import COLUMNS
-    from crashfuse.evaluation.loto import COVERAGE_COLUMNS
+    from crashfuse.evaluation.fold import COVERAGE_COLUMNS
     from crashfuse.evaluation.records import write_fold_json
     from crashfuse.io.atomic import atomic_path
-    from crashfuse.io.campaign import read_campaign
     from crashfuse.io.prediction import read_prediction_csv
 
-    campaign, folder = read_campaign(args.campaign), Path(args.fold)
-    _known_test(campaign, args.test)
+    campaign, folder = _test_campaign(args), Path(args.fold)
     facts = read_rollout_facts(folder / f"{args.test}{ROLLOUT_SUFFIX}")
     frame = read_prediction_csv(folder / f"{args.test}_prediction.csv")
     cae = None if campaign.companion(args.test) else cae_pulse(campaign, _read_surrogate(args, campaign), args.test)
@@ -243,6 +241,15 @@ def _auto(args) -> int:
     return 0
 
 
+def _test_campaign(args):
+    """The campaign of ``args.campaign`` with only the test ``args.test`` and its companion read."""
+    from crashfuse.io.campaign import read_campaign
+
+    campaign = read_campaign(args.campaign, runs=[args.test])
+    _known_test(campaign, args.test)
+    return campaign
+
+
 def _known_test(campaign, test_id) -> None:
     if test_id not in campaign.tests:
         raise InputError(f"expected a test of the campaign ({', '.join(campaign.tests)}), got {test_id!r}",
@@ -250,12 +257,9 @@ def _known_test(campaign, test_id) -> None:
 
 
 def _plot_fold(args) -> int:
-    from crashfuse.io.campaign import read_campaign
     from crashfuse.reporting.plots import plot_fold
 
-    campaign = read_campaign(args.campaign)
-    _known_test(campaign, args.test)
-    test = campaign.pulses[args.test].after_contact()
+    test = _test_campaign(args).pulses[args.test].after_contact()
     print(f"wrote {plot_fold(test, args.prediction, args.out, title=args.title)}")
     return 0
 

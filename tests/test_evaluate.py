@@ -15,7 +15,8 @@ from crashfuse.errors import InputError
 from crashfuse.io.campaign_write import write_campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.method.config import MethodConfig
-from crashfuse.method.model import fit_model, load_model
+from crashfuse.io.campaign import read_campaign
+from crashfuse.method.model import fit_model, load_model, load_surrogate
 from crashfuse.evaluation.fold import band_coverage
 from crashfuse.evaluation.records import read_fold_json
 from crashfuse.method.rollout import predict
@@ -175,6 +176,13 @@ def test_fold_json_matches_the_table(result):
     assert (out / "state" / "K1" / "T08" / record.prediction).exists()
 
 
+def test_the_table_knows_every_input_mode():
+    from crashfuse.evaluation.iso_table import AUTO, ROW_INPUTS
+    from crashfuse.method.projection import INPUTS
+
+    assert ROW_INPUTS == (*INPUTS, AUTO)
+
+
 def test_auto_copies_the_candidate_with_the_smallest_inner_error(campaign, result):
     """Per held-out test, the auto rows, fold JSON and prediction are the chosen candidate's (simplest first), named in
     the JSON."""
@@ -224,6 +232,51 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     assert main(["evaluate", str(folder), "--k", "1", "--surrogate", str(folder / "conditions.csv"),
                  "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_the_cli_steps_of_a_fold_give_the_evaluate_fold(campaign, tmp_path, capsys):
+    """fit -> rollout -> score (the workflow's jobs) score what evaluate does, to the CSV's 6 digits; auto
+    picks among rollouts with their inner error; bad steps are named."""
+    folder = write_campaign(campaign, tmp_path / "campaign")
+    surrogate, fold = tmp_path / "surrogate.cfmodel", tmp_path / "fold"
+    assert main(["prepare", str(folder), "--out", str(surrogate)]) == 0
+    for k in (1, 2):
+        model, out = tmp_path / f"K{k}.cfmodel", fold / f"K{k}"
+        assert main(["fit", str(folder), "--k", str(k), "--inputs", "state", "--holdout", "T05", "--surrogate",
+                     str(surrogate), "--n-grid", "40", "--out", str(model)]) == 0
+        assert main(["rollout", str(model), str(folder), "--test", "T05", "--samples", "40", "--inner",
+                     "--out", str(out)]) == 0
+        assert main(["score", str(folder), str(out), "--test", "T05", "--table-dir", str(out)]) == 0
+    res = ev.evaluate(read_campaign(folder), ks=[1], inputs=["state"], holdout="T05", n_samples=40, n_jobs=1,
+                      surrogate=load_surrogate(surrogate), progress=None, n_grid=40)
+    steps = pd.read_csv(fold / "K1" / "iso_table.csv", dtype={"window_ms": str})
+    np.testing.assert_allclose(steps[steps.model == "K1"].overall, res.iso_table[res.iso_table.model == "K1"].overall,
+                               atol=1e-4)
+    assert read_fold_json(fold / "K1" / "T05.fold.json").settings == res.records["state", "K1", "T05"].settings
+    assert main(["auto", str(fold / "K1" / "T05.rollout.json"), str(fold / "K2" / "T05.rollout.json"),
+                 "--inputs", "state", "--out", str(fold / "auto")]) == 0
+    assert main(["score", str(folder), str(fold / "auto"), "--test", "T05", "--table-dir", str(fold / "auto")]) == 0
+    assert set(pd.read_csv(fold / "auto" / "iso_table.csv").model) == {"CAE", "auto"}
+    capsys.readouterr()
+    assert main(["score", str(folder), str(fold / "K1"), "--test", "T99", "--table-dir", str(fold)]) == 2
+    assert "T99" in capsys.readouterr().err
+    assert main(["score", str(folder), str(fold / "K1"), "--test", "T05", "--windows", "40-20",
+                 "--table-dir", str(fold)]) == 2
+    assert "--windows" in capsys.readouterr().err
+    assert main(["score", str(folder), str(tmp_path), "--test", "T05", "--table-dir", str(fold)]) == 2
+    assert "T05.rollout.json" in capsys.readouterr().err
+    assert main(["rollout", str(tmp_path / "K1.cfmodel"), str(folder), "--test", "T08", "--out", str(fold)]) == 2
+    assert "fitted without T08" in capsys.readouterr().err
+
+
+def test_reading_one_run_and_its_companion(campaign, tmp_path):
+    folder = write_campaign(campaign, tmp_path / "campaign")
+    one = read_campaign(folder, runs=["T05"])
+    assert one.tests == ["T05"] and set(one.pulses) == {"T05", campaign.companion("T05").run_id}
+    np.testing.assert_array_equal(one.pulses["T05"].decel, read_campaign(folder).pulses["T05"].decel)
+    with pytest.raises(InputError) as err:
+        read_campaign(folder, runs=["T99"])
+    assert err.value.field == "run_id"
 
 
 def test_workers_read_the_campaign_once_from_a_pickle_they_remove(campaign, surrogate, tmp_path, monkeypatch):

@@ -25,10 +25,12 @@ from crashfuse.signals.iso18571 import iso_score
 from crashfuse.units import G0, MS
 
 __all__ = ["ROLLOUT_SUFFIX", "rollout_fold", "write_rollout_facts", "read_rollout_facts", "auto_facts", "score_fold",
-           "cae_rows", "band_coverage", "COVERAGE_WINDOW_MS"]
+           "cae_rows", "band_coverage", "COVERAGE_WINDOW_MS", "COVERAGE_COLUMNS"]
 
 ROLLOUT_SUFFIX = ".rollout.json"
 COVERAGE_WINDOW_MS = (0, 60)
+COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "coverage_latent", "n_points", "extrapolation",
+                    "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s", "inner_error"]
 _FACT_KEYS = ("test_id", "inputs", "k", "model", "seed", "campaign", "settings", "metrics")
 
 
@@ -217,7 +219,7 @@ def score_fold(campaign, test_id: str, frame, facts: dict, windows=WINDOWS, cae=
     -------
     dict
         ``iso`` (the model's rows), ``cae_iso`` (the CAE rows), ``coverage`` (one row of
-        :data:`crashfuse.evaluation.loto.COVERAGE_COLUMNS`) and ``record`` (:class:`FoldRecord`).
+        :data:`COVERAGE_COLUMNS`) and ``record`` (:class:`FoldRecord`).
     """
     if facts["test_id"] != test_id:
         raise InputError(f"expected the rollout of {test_id}, got that of {facts['test_id']}", field="test")

@@ -29,7 +29,7 @@ from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import AUTO, COLUMNS, effects_label
-from crashfuse.evaluation.fold import auto_facts, cae_pulse, rollout_fold, score_fold
+from crashfuse.evaluation.fold import COVERAGE_COLUMNS, auto_facts, cae_pulse, rollout_fold, score_fold
 from crashfuse.evaluation.fold import cae_rows as fold_cae_rows
 from crashfuse.evaluation.records import fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
@@ -41,8 +41,6 @@ from crashfuse.method.projection import INPUTS
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0
 
-COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "coverage_latent", "n_points", "extrapolation",
-                    "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s", "inner_error"]
 
 
 @dataclasses.dataclass(frozen=True)
