@@ -134,7 +134,8 @@ def _world_validate_method(args) -> int:
                  matrices=args.matrices, n_cae=args.n_cae, inputs=args.inputs, ks=args.k, n_samples=args.samples)
     base = QUICK if args.quick else DEFAULTS
     spread = {name: base[name] if value is None else value for name, value in given.items()}
-    result = validate_method(args.out, work=args.work, random_state=args.seed, n_jobs=args.jobs, auto=args.auto,
+    result = validate_method(args.out, work=args.work, random_state=args.seed, n_jobs=args.jobs,
+                             auto=_auto_arg(args.auto),
                              **spread)
     print(result.summary.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
     return 0
@@ -250,6 +251,11 @@ def _test_campaign(args):
     return campaign
 
 
+def _auto_arg(value):
+    """``--auto`` absent: False; alone: True (the default modes); with modes: those."""
+    return False if value is None else (value or True)
+
+
 def _known_test(campaign, test_id) -> None:
     if test_id not in campaign.tests:
         raise InputError(f"expected a test of the campaign ({', '.join(campaign.tests)}), got {test_id!r}",
@@ -317,7 +323,7 @@ def _evaluate(args) -> int:
     surrogate = _read_surrogate(args, campaign)
     result = evaluate(campaign, ks=args.k, inputs=args.inputs, out=args.out,
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
-                      holdout=args.holdout, band=args.band, auto=args.auto, **_method_settings(args))
+                      holdout=args.holdout, band=args.band, auto=_auto_arg(args.auto), **_method_settings(args))
     plot_evaluation(result, args.out, campaign)
     summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
     print(summary.mean().round(3).to_string())
@@ -570,7 +576,8 @@ def _add_world_validate_method(wsub) -> None:
     s.add_argument("--inputs", nargs="+", default=None, help="input modes paper state (default state)")
     s.add_argument("--k", type=_positive, nargs="+", default=None, help="mixture sizes (default 1 2 3)")
     s.add_argument("--samples", type=_positive, default=None, help="Monte Carlo samples per fold (default 200)")
-    s.add_argument("--auto", action="store_true", help="also the auto model, chosen among the input modes and K")
+    s.add_argument("--auto", nargs="*", choices=("paper", "state"), default=None, metavar="MODE",
+                   help="also the auto model, chosen among K (and the input modes MODE; default state)")
     s.add_argument("--seed", type=_seed, default=0, help="seed of every evaluation (default 0)")
     s.add_argument("--jobs", type=_positive, default=2, help="worker processes for each campaign's folds (default 2)")
     s.set_defaults(func=_world_validate_method)
@@ -608,8 +615,8 @@ def _add_auto(sub) -> None:
     s = sub.add_parser("auto", help="the auto model's fold: of one test's candidate rollouts, the one with the "
                                     "smallest inner error (simplest first)")
     s.add_argument("facts", nargs="+", help="the candidates' <test>.rollout.json files (from 'rollout --inner')")
-    s.add_argument("--inputs", nargs="+", choices=("paper", "state"), default=["paper", "state"],
-                   help="order of the input modes among candidates of one K (default paper state)")
+    s.add_argument("--inputs", nargs="+", choices=("paper", "state"), default=["state"],
+                   help="the candidates' input modes, in order among candidates of one K (default state)")
     s.add_argument("--out", required=True, help="fold folder for the chosen <test>_prediction.csv and facts")
     s.set_defaults(func=_auto)
 
@@ -652,9 +659,9 @@ def _add_evaluate(sub) -> None:
     s.add_argument("--jobs", type=_positive, default=2, help="worker processes (default 2)")
     s.add_argument("--holdout", action="append", default=None, metavar="RUN_ID",
                    help="run only the fold holding out this test (repeatable; default every test)")
-    s.add_argument("--auto", action="store_true",
-                   help="also the auto model: per fold, the input mode and K of the smallest inner error on the "
-                        "training tests (rows labelled auto)")
+    s.add_argument("--auto", nargs="*", choices=("paper", "state"), default=None, metavar="MODE",
+                   help="also the auto model: per fold, the K (and input mode, among MODE; default state) of the "
+                        "smallest inner error on the training tests (rows labelled auto)")
     _add_surrogate_option(s)
     _add_method_options(s)
     _add_band_option(s)
@@ -751,7 +758,7 @@ _FLAGS = {
     "rollout": {"n_samples": "--samples", "band": "--band", "test": "--test"},
     "score": {"test": "--test", "windows": "--windows"},
     "plot fold": {"test": "--test"},
-    "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out"},
+    "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out", "auto": "--auto"},
     "predict": {"n_samples": "--samples", "random_state": "--seed", "band": "--band"},
     "diagnose": {"effects": "--effects", "threshold": "--threshold", "alpha": "--alpha", "move": "--move",
                  "k": "--k", "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed"},

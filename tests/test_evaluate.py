@@ -158,7 +158,8 @@ def test_band_coverage_closed_form():
 
 
 @pytest.mark.parametrize("kw, field", [(dict(ks=[0]), "k"), (dict(inputs=["both"]), "inputs"),
-                                       (dict(trend="cubic"), "trend"), (dict(random_state=-1), "random_state")])
+                                       (dict(trend="cubic"), "trend"), (dict(random_state=-1), "random_state"),
+                                       (dict(inputs=["paper"], auto=True), "auto")])
 def test_bad_settings(campaign, surrogate, kw, field):
     with pytest.raises(InputError) as err:
         ev.evaluate(campaign, surrogate=surrogate, progress=None, **kw)
@@ -184,14 +185,15 @@ def test_the_table_knows_every_input_mode():
 
 
 def test_auto_copies_the_candidate_with_the_smallest_inner_error(campaign, result):
-    """Per held-out test, the auto rows, fold JSON and prediction are the chosen candidate's (simplest first), named in
-    the JSON."""
+    """Per held-out test, the auto rows, fold JSON and prediction are those of the state fold :func:`choose` picks
+    (simplest first), named in the JSON."""
     res, out = result
     cov, iso = res.coverage, res.iso_table
     for test_id in KEEP:
-        candidates = cov[(cov.test_id == test_id) & (cov.model != "auto")].sort_values("model", kind="stable")
+        assert cov[(cov.test_id == test_id) & (cov.inputs == "paper")].inner_error.isna().all()  # not candidates
+        candidates = cov[(cov.test_id == test_id) & (cov.inputs == "state")].sort_values("model")  # state K1, K2
         assert (candidates.inner_error > 0).all() and np.isfinite(candidates.inner_error).any()
-        best = candidates.iloc[choose(candidates.inner_error.tolist()).index]  # K1 paper, K1 state, K2 ...
+        best = candidates.iloc[choose(candidates.inner_error.tolist()).index]
         record = read_fold_json(out / "auto" / "auto" / test_id / f"{test_id}.fold.json")
         assert record.model == "auto" and record.settings["chosen"] == f"{best.inputs} {best.model}"
         assert record.settings["candidates"].count(":") == len(candidates)

@@ -25,10 +25,13 @@ from crashfuse.signals.iso18571 import iso_score
 from crashfuse.units import G0, MS
 
 __all__ = ["ROLLOUT_SUFFIX", "rollout_fold", "write_rollout_facts", "read_rollout_facts", "auto_facts", "score_fold",
-           "cae_rows", "band_coverage", "COVERAGE_WINDOW_MS", "COVERAGE_COLUMNS"]
+           "cae_rows", "band_coverage", "COVERAGE_WINDOW_MS", "COVERAGE_COLUMNS", "AUTO_INPUTS"]
 
 ROLLOUT_SUFFIX = ".rollout.json"
 COVERAGE_WINDOW_MS = (0, 60)
+# The input modes the auto model chooses among by default: the paper mode's inner error looked as good
+# where its held-out test then lost (docs/decisions.md, section 23).
+AUTO_INPUTS = ("state",)
 COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "coverage_latent", "n_points", "extrapolation",
                     "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s", "inner_error"]
 _FACT_KEYS = ("test_id", "inputs", "k", "model", "seed", "campaign", "settings", "metrics")
@@ -160,7 +163,7 @@ def read_rollout_facts(path: str | os.PathLike) -> dict:
     return facts
 
 
-def auto_facts(candidates: list, inputs=("paper", "state")) -> tuple[int, dict]:
+def auto_facts(candidates: list, inputs=AUTO_INPUTS) -> tuple[int, dict]:
     """The ``auto`` model's rollout facts for one held-out test: the candidate's that
     :func:`crashfuse.method.selection.choose` picks by inner error, relabelled.
 
@@ -187,6 +190,9 @@ def auto_facts(candidates: list, inputs=("paper", "state")) -> tuple[int, dict]:
     if len(tests) != 1 or missing:
         raise InputError(f"expected the rollouts of one test, each with its inner error (rollout --inner); got tests "
                          f"{sorted(tests)}, without it: {missing}", field="candidates")
+    other = sorted({c["inputs"] for c in candidates} - set(inputs))
+    if other:
+        raise InputError(f"expected candidates of the input modes {list(inputs)}, got {other}", field="inputs")
     order = sorted(range(len(candidates)), key=lambda i: (candidates[i]["k"], list(inputs).index(candidates[i]["inputs"])))
     pick = choose([candidates[i]["metrics"]["inner_error"] for i in order])
     names = [f"{candidates[i]['inputs']} {candidates[i]['model']}" for i in order]

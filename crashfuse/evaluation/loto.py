@@ -29,7 +29,7 @@ from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import AUTO, COLUMNS, effects_label
-from crashfuse.evaluation.fold import COVERAGE_COLUMNS, auto_facts, cae_pulse, rollout_fold, score_fold
+from crashfuse.evaluation.fold import AUTO_INPUTS, COVERAGE_COLUMNS, auto_facts, cae_pulse, rollout_fold, score_fold
 from crashfuse.evaluation.fold import cae_rows as fold_cae_rows
 from crashfuse.evaluation.records import fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
@@ -75,7 +75,7 @@ class Evaluation:
 def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.PathLike | None = None,
              n_samples: int = 1000, random_state: int = 0, n_jobs: int = 2, surrogate: CAESurrogate | None = None,
              holdout=None, progress: Callable[[str], None] | None = print, band: str = "test",
-             auto: bool = False, **settings) -> Evaluation:
+             auto=False, **settings) -> Evaluation:
     """Every leave-one-test-out fold for each K in ``ks`` and each input mode.
 
     Parameters
@@ -104,11 +104,12 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     band : {"test", "latent"}
         The reported band (:func:`crashfuse.method.rollout.predict`) that ``coverage`` measures; the latent
         band's coverage is recorded either way.
-    auto : bool
-        Also the ``auto`` model: per held-out test, the fold (input mode, K) whose bias model predicts its
-        training tests best (:func:`crashfuse.method.selection.inner_error`, the simplest unless a more
-        complex candidate removes 10 % of the error: :func:`crashfuse.method.selection.choose`);
-        its rows are labelled ``auto`` for both ``inputs`` and ``model``, its fold JSON names the choice.
+    auto : bool or sequence of {"paper", "state"}
+        Also the ``auto`` model: per held-out test, among the folds of these input modes (True: ``state``,
+        :data:`AUTO_INPUTS`) and every K, the one whose bias model predicts its training tests best
+        (:func:`crashfuse.method.selection.inner_error`, the simplest unless a more complex candidate
+        removes 10 % of the error: :func:`crashfuse.method.selection.choose`); its rows are labelled
+        ``auto`` for both ``inputs`` and ``model``, its fold JSON names the choice.
     **settings
         Further :class:`crashfuse.method.config.MethodConfig` settings of every fold (``assignment``,
         ``extra_inputs``, ``n_grid``, ``use_companion``, ``target``, ``weights``, ``velocity``, ``trend``,
@@ -127,21 +128,23 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
     say = progress or (lambda line: None)
     physics = _physics(campaign, surrogate, tests, next(iter(configs.values())).effects, n_jobs, say)
+    auto_modes = _auto_modes(auto, inputs)
     folds = [(configs[mode, k], t, physics[t]) for mode in inputs for k in ks for t in tests]
     say(f"evaluate: {len(folds)} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
     results = []
-    for i, res in enumerate(_run_folds(campaign, surrogate, folds, n_jobs, (n_samples, band, auto)), 1):
+    for i, res in enumerate(_run_folds(campaign, surrogate, folds, n_jobs, (n_samples, band, auto_modes)), 1):
         results.append(res)
         cov = res["coverage"]
         say(f"[{i}/{len(folds)}] {cov['inputs']} {cov['model']} {cov['test_id']}: "
             f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
             f"fit {cov['fit_s']:.1f} s")
-    if auto:
-        chosen = [_auto_fold(campaign, surrogate, [r for r in results if r["coverage"]["test_id"] == t], inputs)
+    if auto_modes:
+        chosen = [_auto_fold(campaign, surrogate, [r for r in results if r["coverage"]["test_id"] == t
+                                                   and r["coverage"]["inputs"] in auto_modes], auto_modes)
                   for t in tests]
         say("auto: " + ", ".join(f"{r['coverage']['test_id']} {r['record'].settings['chosen']}" for r in chosen))
         results += chosen
-    modes = [*inputs, AUTO] if auto else inputs
+    modes = [*inputs, AUTO] if auto_modes else inputs
     cae_rows = [row for t in tests for mode in modes for row in fold_cae_rows(campaign, surrogate, t, mode)]
     iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=list(COLUMNS))
     coverage = pd.DataFrame([res["coverage"] for res in results], columns=COVERAGE_COLUMNS)
@@ -153,6 +156,18 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         write_evaluation(result, out)
     say(f"evaluate: done in {result.wall_time:.1f} s")
     return result
+
+
+def _auto_modes(auto, inputs) -> tuple:
+    """The input modes the auto model chooses among (empty without it); InputError if one is not evaluated."""
+    if auto is False or auto is None:
+        return ()
+    modes = AUTO_INPUTS if auto is True else ((auto,) if isinstance(auto, str) else tuple(auto))
+    missing = [m for m in modes if m not in inputs]
+    if not modes or missing:
+        raise InputError(f"the auto model chooses among evaluated input modes {list(inputs)}, got {list(modes)}",
+                         field="auto")
+    return modes
 
 
 def _held_out(campaign: Campaign, holdout) -> list[str]:
@@ -238,12 +253,12 @@ def _load_shared(path):
         return pickle.load(fh)
 
 
-def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, inner=False) -> dict:
+def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, auto_modes=()) -> dict:
     """Fit ``config`` without ``test_id`` (with the hybrid's ``physics`` fitted without it, if any),
     roll out its condition and score it (:mod:`crashfuse.evaluation.fold`, the workflow's three steps in one
-    process); with ``inner``, the fit's inner error too."""
+    process); the fit's inner error too where its input mode is among ``auto_modes``."""
     model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics)
-    pred, facts = rollout_fold(model, campaign, test_id, n_samples, band, inner)
+    pred, facts = rollout_fold(model, campaign, test_id, n_samples, band, config.inputs in auto_modes)
     frame = pred.frame()
     scored = score_fold(campaign, test_id, frame, facts, cae=cae_pulse(campaign, surrogate, test_id))
     frame["test_decel_g"] = np.interp(pred.time, *_test_decel(campaign, test_id)) / G0

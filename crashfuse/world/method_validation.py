@@ -233,11 +233,12 @@ def campaign_folder(spec: CampaignSpec, work: Path, say) -> Path:
 
 
 def evaluation_key(inputs, ks, n_samples, random_state, auto=False) -> str:
-    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{'-auto' if auto else ''}-n{n_samples}-seed{random_state}"
+    auto = "" if not auto else "-auto" if auto is True else "-auto-" + "-".join(auto)
+    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{auto}-n{n_samples}-seed{random_state}"
 
 
 def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int, n_jobs: int,
-                      progress=None, auto: bool = False) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
+                      progress=None, auto=False) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
     """The campaign's ISO table and coverage, from ``out`` if there, else evaluated and written there
     (``progress`` receives evaluate's line per fold).
 
@@ -324,7 +325,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
                     strengths=DEFAULTS["strengths"], seeds=DEFAULTS["seeds"], matrices=DEFAULTS["matrices"],
                     n_cae=DEFAULTS["n_cae"], inputs=DEFAULTS["inputs"], ks=DEFAULTS["ks"],
                     n_samples: int = DEFAULTS["n_samples"], random_state: int = 0, n_jobs: int = 2,
-                    progress: Callable[[str], None] | None = print, auto: bool = False) -> MatrixResult:
+                    progress: Callable[[str], None] | None = print, auto=False) -> MatrixResult:
     """Generate the spread (:func:`plan`), evaluate each campaign, write the matrix table.
 
     Parameters
@@ -346,8 +347,9 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
         Worker processes for each campaign's folds.
     progress : callable, optional
         Receives one line per campaign, and an indented line per fold.
-    auto : bool
-        Also rate the ``auto`` model (:func:`crashfuse.evaluation.loto.evaluate`), chosen among ``inputs`` x ``ks``.
+    auto : bool or sequence of str
+        Also rate the ``auto`` model (:func:`crashfuse.evaluation.loto.evaluate`'s ``auto``: among ``ks`` and,
+        True, the state mode's folds, or those of the given input modes).
 
     Returns
     -------

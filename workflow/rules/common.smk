@@ -17,6 +17,11 @@ RESULTS = config["results"]
 GENERATED = config["campaign"]["path"] is None
 CAMPAIGN = f"{RESULTS}/paper" if GENERATED else config["campaign"]["path"]
 METHOD = config["method"]
+# The auto model chooses among the state folds (crashfuse.evaluation.fold.AUTO_INPUTS; docs/decisions.md 23).
+AUTO_INPUTS = ["state"]
+if config["auto"] and not set(AUTO_INPUTS) <= set(config["inputs"]):
+    raise WorkflowError(f"config auto: the auto model chooses among the {AUTO_INPUTS} folds; add them to inputs "
+                        f"(got {config['inputs']}) or set auto: false")
 
 
 def method_args():
@@ -54,8 +59,8 @@ def fold_title(wildcards):
 
 
 def candidate_files(pattern, test):
-    """`pattern` of every (input mode, K) fold of one test: the auto model's candidates."""
-    return expand(fold_path(pattern), inputs=config["inputs"], model=[f"K{k}" for k in config["ks"]], test=test)
+    """`pattern` of the auto model's candidates of one test: every K of its input modes (AUTO_INPUTS)."""
+    return expand(fold_path(pattern), inputs=AUTO_INPUTS, model=[f"K{k}" for k in config["ks"]], test=test)
 
 
 def read_tests(campaign_dir):

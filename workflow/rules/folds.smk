@@ -49,7 +49,7 @@ rule rollout:
         model=r"K[1-9][0-9]*",
     params:
         samples=METHOD["samples"],
-        inner="--inner" if config["auto"] else "",
+        inner=lambda wildcards: "--inner" if config["auto"] and wildcards.inputs in AUTO_INPUTS else "",
         out=lambda wildcards, output: Path(output.facts).parent,
     group:
         "fold"
@@ -113,7 +113,7 @@ rule auto:
         prediction=f"{RESULTS}/folds/auto/auto/{{test}}/{{test}}_prediction.csv",
         facts=f"{RESULTS}/folds/auto/auto/{{test}}/{{test}}.rollout.json",
     params:
-        inputs=" ".join(config["inputs"]),
+        inputs=" ".join(AUTO_INPUTS),
         out=lambda wildcards, output: Path(output.facts).parent,
     log:
         f"{RESULTS}/logs/folds/auto/auto/{{test}}/auto.log",
