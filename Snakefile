@@ -18,6 +18,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/campaign.smk"
 include: "workflow/rules/folds.smk"
 include: "workflow/rules/aggregate.smk"
+include: "workflow/rules/final.smk"
 include: "workflow/rules/track.smk"
 include: "workflow/rules/diagnosis.smk"
 

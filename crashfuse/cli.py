@@ -262,6 +262,47 @@ def _known_test(campaign, test_id) -> None:
                          campaign.root, "--test")
 
 
+def _plot_prediction(args) -> int:
+    from crashfuse.reporting.plots import plot_fold
+
+    title = args.title
+    if args.json:
+        try:
+            flags = json.loads(Path(args.json).read_text())["extrapolation"]
+        except (OSError, ValueError, KeyError) as err:
+            raise InputError(f"expected the JSON of 'crashfuse predict --json' ({err})", args.json, "extrapolation")
+        words = {"v0": "speed", "front_weight": "front weight", "rear_weight": "rear weight", "crush": "crush",
+                 "rebound": "rebound", "state": "crush-velocity path"}
+        outside = [words.get(k, k) for k, v in flags.items() if v and k != "any"]
+        if outside:  # a prediction beyond the tests says so where it is looked at
+            title = f"{title or ''} - OUTSIDE the tests ({', '.join(outside)})".strip(" -")
+    print(f"wrote {plot_fold(None, args.prediction, args.out, title=title)}")
+    return 0
+
+
+def _select(args) -> int:
+    import shutil
+
+    from crashfuse.io.atomic import atomic_path
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.method.model import load_model
+    from crashfuse.method.selection import choose, inner_error
+
+    campaign = read_campaign(args.campaign)
+    models = [load_model(m) for m in args.models]
+    if len({tuple(m.training_tests) for m in models}) != 1 or any(m.campaign_hash != campaign.content_hash()
+                                                                     for m in models):
+        raise InputError("expected models fitted on the same tests of this campaign", args.models[0], "models")
+    order = sorted(range(len(models)), key=lambda i: (models[i].config.k, models[i].config.inputs))
+    pick = choose([inner_error(models[i], campaign) for i in order])
+    chosen = order[pick.index]
+    with atomic_path(args.out) as tmp:
+        shutil.copyfile(args.models[chosen], tmp)
+    scores = ", ".join(f"{models[i].config.inputs} K{models[i].config.k}: {e:.4g}" for i, e in zip(order, pick.scores))
+    print(f"wrote {args.out}: auto chose {args.models[chosen]} (inner error, (m/s^2)^2: {scores})")
+    return 0
+
+
 def _plot_fold(args) -> int:
     from crashfuse.reporting.plots import plot_fold
 
@@ -441,7 +482,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="crashfuse", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (_add_pulse_metrics, _add_iso_score, _add_barrier_model, _add_world, _add_fit, _add_predict,
-                _add_rollout, _add_auto, _add_score, _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report,
+                _add_rollout, _add_auto, _add_select, _add_score, _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report,
                 _add_plot, _add_track):
         add(sub)
     return p
@@ -621,6 +662,15 @@ def _add_auto(sub) -> None:
     s.set_defaults(func=_auto)
 
 
+def _add_select(sub) -> None:
+    s = sub.add_parser("select", help="the auto model file: of models fitted on the same tests, the one of the "
+                                      "smallest inner error (simplest first)")
+    _add_campaign(s)
+    s.add_argument("models", nargs="+", help="model files (.cfmodel) from 'crashfuse fit' on this campaign")
+    s.add_argument("--out", required=True, help="the chosen model, copied here")
+    s.set_defaults(func=_select)
+
+
 def _add_score(sub) -> None:
     s = sub.add_parser("score", help="a fold's ISO/TS 18571 rows, band coverage and fold JSON from its rollout")
     _add_campaign(s)
@@ -726,6 +776,12 @@ def _add_plot(sub) -> None:
     s.add_argument("--score", default="overall", help="score to plot (default overall)")
     s.add_argument("--out", required=True, help="PNG file")
     s.set_defaults(func=_plot_summary)
+    s = psub.add_parser("prediction", help="a prediction's CAE and corrected pulse with its band (no test)")
+    s.add_argument("prediction", help="the prediction CSV ('crashfuse predict')")
+    s.add_argument("--json", default=None, help="its 'crashfuse predict --json' output: an extrapolation goes in the title")
+    s.add_argument("--title", default=None, help="figure title")
+    s.add_argument("--out", required=True, help="PNG file")
+    s.set_defaults(func=_plot_prediction)
     s = psub.add_parser("fold", help="a fold's test, CAE and corrected pulse with its band")
     _add_campaign(s)
     s.add_argument("prediction", help="the fold's prediction CSV")

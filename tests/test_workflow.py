@@ -130,6 +130,8 @@ def test_default_dag_has_the_method_steps_per_test_k_and_input_mode(generated):
     assert n_tests == 11
     assert counts["train"] == counts["rollout"] == n_tests * 3 * 2 and counts["auto"] == n_tests
     assert counts["score"] == counts["figure"] == n_tests * (3 * 2 + 1)
+    assert counts["final_model"] == 3 and counts["final_auto"] == 1  # the state K the auto model chooses among
+    assert counts["predict"] == counts["prediction_figure"] == 3  # the default config's conditions
     assert {counts[r] for r in ("prepare", "aggregate", "tables", "summary_figure", "track", "all")} == {1}
     assert "campaign" not in counts
 
@@ -237,6 +239,12 @@ def test_end_to_end_on_the_test_config(tmp_path):
         rows = [iso[(iso.test_id == test) & (iso.inputs == i) & (iso.model == m)].overall.tolist()
                 for i, m in (("auto", "auto"), (inputs, model))]
         assert rows[0] == rows[1]
+    for condition in config["predictions"]["conditions"]:  # the deliverable: a condition nobody tested
+        stem = results / "predictions" / "auto" / "auto" / condition["name"]
+        predicted = json.loads(stem.with_suffix(".json").read_text())
+        assert predicted["metrics"]["peak_decel_g"]["lo"] <= predicted["metrics"]["peak_decel_g"]["hi"]
+        assert len(pd.read_csv(stem.with_suffix(".csv"))) > 100 and stem.with_suffix(".png").stat().st_size > 0
+    assert "auto chose" in (results / "logs" / "final" / "auto.log").read_text()
     assert (results / "report.html").stat().st_size > 0
     assert str(results / "report.html") in done.stdout
     logged = json.loads((results / "tracking.json").read_text())
@@ -259,12 +267,13 @@ def test_end_to_end_on_the_test_config(tmp_path):
     (tmp_path / "changed.yaml").write_text(yaml.safe_dump(changed))
     counts = job_counts(snakemake(tmp_path, "-n", configfile=tmp_path / "changed.yaml").stdout)
     assert counts["rollout"] == n_folds - n_tests and counts["score"] == counts["figure"] == n_folds
-    assert not {"train", "prepare", "campaign", "diagnose"} & set(counts)  # samples: no refit
+    assert not {"train", "final_model", "prepare", "campaign", "diagnose"} & set(counts)  # samples: no refit
+    assert counts["predict"] == len(config["predictions"]["conditions"])
     windows = dict(config, scoring={"windows": ["0-30", "0-60"]})
     (tmp_path / "windows.yaml").write_text(yaml.safe_dump(windows))
     counts = job_counts(snakemake(tmp_path, "-n", configfile=tmp_path / "windows.yaml").stdout)
     assert counts["score"] == n_folds
-    assert not {"train", "rollout", "figure", "prepare", "campaign"} & set(counts)  # windows: only the scores
+    assert not {"train", "rollout", "figure", "prepare", "campaign", "predict"} & set(counts)  # only the scores
 
     uri = dict(config, tracking={"enabled": True, "uri": f"sqlite:///{tmp_path / 'other.db'}"})
     (tmp_path / "uri.yaml").write_text(yaml.safe_dump(uri))

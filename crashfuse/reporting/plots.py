@@ -39,13 +39,13 @@ MODEL_COLORS = ["#7F7F7F", "#56B4E9", "#009E73", "#E69F00", "#CC79A7", "#0072B2"
 GAP_SHADES = {1: "#E69F00", -1: "#56B4E9"}
 
 
-def fold_figure(test: Pulse, prediction: pd.DataFrame, title: str | None = None) -> Figure:
+def fold_figure(test: Pulse | None, prediction: pd.DataFrame, title: str | None = None) -> Figure:
     """Test vs CAE vs corrected mean with its 95 % band, in the manner of the paper's Figs. 5-8.
 
     Parameters
     ----------
-    test : Pulse
-        The held-out physical test (SI, decel in m/s^2).
+    test : Pulse or None
+        The held-out physical test (SI, decel in m/s^2); None for a condition nobody tested.
     prediction : pandas.DataFrame, shape (n_samples, >= 5)
         A validated prediction table (see `read_prediction_csv`), deceleration in g.
     title : str, optional
@@ -100,12 +100,13 @@ def panels_figure(test: Pulse, predictions: Mapping[str, pd.DataFrame], title: s
     return fig
 
 
-def _draw_fold(ax, test: Pulse, prediction: pd.DataFrame) -> None:
+def _draw_fold(ax, test: Pulse | None, prediction: pd.DataFrame) -> None:
     t_ms = prediction["time_s"].to_numpy() / MS
     ax.fill_between(t_ms, prediction["decel_lo_g"], prediction["decel_hi_g"], color=COLORS["band"], alpha=0.35,
                     linewidth=0, label="95 % band")
-    keep = test.time <= T_END + 0.5 * test.dt
-    ax.plot(test.time[keep] / MS, test.decel[keep] / G0, color=COLORS["test"], lw=1.4, label="test")
+    if test is not None:  # a condition nobody tested has no test to show
+        keep = test.time <= T_END + 0.5 * test.dt
+        ax.plot(test.time[keep] / MS, test.decel[keep] / G0, color=COLORS["test"], lw=1.4, label="test")
     ax.plot(t_ms, prediction["cae_decel_g"], color=COLORS["cae"], lw=1.2, ls="--", label="CAE")
     ax.plot(t_ms, prediction["decel_g"], color=COLORS["mean"], lw=1.6, label="corrected mean")
     ax.set_xlim(0, T_END / MS)
@@ -173,9 +174,10 @@ def save_png(fig: Figure, path: str | os.PathLike) -> Path:
     return path
 
 
-def plot_fold(test: Pulse, prediction_csv: str | os.PathLike, path: str | os.PathLike,
+def plot_fold(test: Pulse | None, prediction_csv: str | os.PathLike, path: str | os.PathLike,
               title: str | None = None) -> Path:
-    """Read a prediction CSV and write its `fold_figure` as a PNG at ``path``."""
+    """Read a prediction CSV and write its `fold_figure` as a PNG at ``path`` (``test`` None: a prediction at a
+    condition nobody tested, CAE and corrected mean with its band)."""
     return save_png(fold_figure(test, read_prediction_csv(prediction_csv), title), path)
 
 

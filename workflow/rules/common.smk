@@ -102,6 +102,30 @@ def fold_files(pattern):
     return out + (expand(pattern, inputs="auto", model="auto", test=tests) if config["auto"] else [])
 
 
+PREDICT = config["predictions"]
+_CONDITIONS = {c["name"]: c for c in PREDICT["conditions"]}
+
+
+def condition_args(wildcards):
+    """`crashfuse predict`'s condition options of the configured condition `wildcards.condition`."""
+    c = _CONDITIONS[wildcards.condition]
+    flags = [f"--v0-mph {c['v0_mph']}", f"--front-weight-lb {c['front_weight_lb']}",
+             f"--rear-weight-lb {c['rear_weight_lb']}"]
+    flags += [f"--{key} {shlex.quote(str(c[key]))}" for key in ("powertrain", "drive") if c.get(key) is not None]
+    return " ".join(flags)
+
+
+def prediction_label(wildcards):
+    """How a prediction figure names its model: `auto`, or `state K1` ..."""
+    return "auto" if wildcards.model == "auto" else f"{wildcards.inputs} K = {wildcards.model[1:]}"
+
+
+def prediction_files(suffix):
+    """`<results>/predictions/<inputs>/<model>/<condition><suffix>` of every configured model and condition."""
+    models = [("auto", "auto") if m == "auto" else Path(m).parts for m in PREDICT["models"]]
+    return [f"{RESULTS}/predictions/{i}/{m}/{c}{suffix}" for i, m in models for c in _CONDITIONS]
+
+
 def all_outputs(wildcards):
     """The final targets: the table, its renderings, the summary figure, tracking, diagnosis, validations."""
     out = [
@@ -110,6 +134,7 @@ def all_outputs(wildcards):
         f"{RESULTS}/figures/iso_summary.png",
     ]
     out += fold_files(fold_path("{test}.png"))
+    out += prediction_files(".png")
     if config["tracking"]["enabled"]:
         out.append(f"{RESULTS}/tracking.json")
     if config["diagnosis"]["enabled"]:
