@@ -200,9 +200,8 @@ def _rollout(args) -> int:
 def _score(args) -> int:
     import pandas as pd
 
-    from crashfuse.evaluation.fold import ROLLOUT_SUFFIX, cae_pulse, read_rollout_facts, score_fold
+    from crashfuse.evaluation.fold import COVERAGE_COLUMNS, ROLLOUT_SUFFIX, cae_pulse, read_rollout_facts, score_fold
     from crashfuse.evaluation.iso_table import COLUMNS
-    from crashfuse.evaluation.fold import COVERAGE_COLUMNS
     from crashfuse.evaluation.records import write_fold_json
     from crashfuse.io.atomic import atomic_path
     from crashfuse.io.prediction import read_prediction_csv

@@ -10,6 +10,7 @@ score needs neither the model file nor the GP libraries.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -95,9 +96,7 @@ def fold_settings(config, n_samples: int) -> dict:
     K, the input mode and the seed have their own fields there. The GMMGPBias settings appear
     only where they differ from the bias model's defaults, as ``bias_<name>`` (tuples as text).
     """
-    import dataclasses
-
-    from crashfuse.method.config import BIAS_SETTINGS
+    from crashfuse.method.config import BIAS_SETTINGS  # the GP stack: not for a score job
 
     own = {"k", "inputs", "random_state", *BIAS_SETTINGS}
     flat = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if f.name not in own}
