@@ -156,7 +156,7 @@ def _fit(args) -> int:
     config = MethodConfig(k=args.k, inputs=args.inputs, random_state=args.seed, **_method_settings(args))
     campaign = read_campaign(args.campaign)
     model = fit_model(campaign, config, holdout=args.holdout, surrogate=_read_surrogate(args, campaign))
-    model.save(args.out)
+    model.save(args.out, surrogate_file=args.surrogate)  # with --surrogate the model refers to its file
     gps = {b: 0 if est is None else len(est.gps_) for b, est in model.bias_.items()}
     print(f"wrote {args.out}: K={args.k} {args.inputs} inputs, {len(model.training_tests)} training tests, "
           f"GPs per branch {gps}, campaign {model.campaign_hash[:12]}")
@@ -182,7 +182,8 @@ def _rollout(args) -> int:
     from crashfuse.io.campaign import read_campaign
     from crashfuse.method.model import load_model
 
-    campaign, model = read_campaign(args.campaign), load_model(args.model)
+    campaign = read_campaign(args.campaign)
+    model = load_model(args.model, _read_surrogate(args, campaign))
     if model.campaign_hash != campaign.content_hash():
         raise InputError(f"the model was fitted on another campaign ({model.campaign_hash[:12]})", args.model,
                          "campaign_hash")
@@ -319,11 +320,11 @@ def _physics_line(physics) -> str:
 
 def _predict(args) -> int:
     from crashfuse.io.atomic import atomic_path
-    from crashfuse.method.model import load_model
+    from crashfuse.method.model import load_model, load_surrogate
     from crashfuse.method.rollout import predict
     from crashfuse.units import LB, MPH
 
-    model = load_model(args.model)
+    model = load_model(args.model, load_surrogate(args.surrogate) if args.surrogate else None)
     pred = predict(model, args.v0_mph * MPH, args.front_weight_lb * LB, args.rear_weight_lb * LB,
                    args.powertrain, args.drive, n_samples=args.samples, random_state=args.seed, band=args.band)
     with atomic_path(args.out) as tmp:
@@ -645,6 +646,7 @@ def _add_rollout(sub) -> None:
     s.add_argument("--test", required=True, help="the held-out test")
     s.add_argument("--samples", type=_positive, default=1000, help="Monte Carlo samples (default 1000)")
     s.add_argument("--inner", action="store_true", help="also the model's inner error (what --auto chooses by)")
+    _add_surrogate_option(s)
     _add_band_option(s)
     s.add_argument("--out", required=True,
                    help="fold folder for <test>_prediction.csv and <test>.rollout.json")
@@ -694,6 +696,8 @@ def _add_predict(sub) -> None:
     s.add_argument("--seed", type=_seed, default=0, help="seed of the draws (default 0)")
     s.add_argument("--out", required=True, help="prediction CSV to write")
     s.add_argument("--json", action="store_true", help="print the pulse metrics with bands as JSON")
+    s.add_argument("--surrogate", default=None,
+                   help="the CAE surrogate file a model fitted with --surrogate refers to (default: the file it names)")
     _add_band_option(s)
     s.set_defaults(func=_predict)
 

@@ -249,6 +249,13 @@ def test_the_cli_steps_of_a_fold_give_the_evaluate_fold(campaign, tmp_path, caps
         assert main(["rollout", str(model), str(folder), "--test", "T05", "--samples", "40", "--inner",
                      "--out", str(out)]) == 0
         assert main(["score", str(folder), str(out), "--test", "T05", "--table-dir", str(out)]) == 0
+    # fit --surrogate: the model refers to the surrogate's file (rollout above found it there) instead of a copy
+    moved = tmp_path / "moved.cfmodel"
+    surrogate.rename(moved)
+    with pytest.raises(InputError, match="refers to its CAE surrogate"):
+        load_model(tmp_path / "K1.cfmodel")
+    assert load_model(tmp_path / "K1.cfmodel", load_surrogate(moved)).surrogate is not None
+    moved.rename(surrogate)
     res = ev.evaluate(read_campaign(folder), ks=[1], inputs=["state"], holdout="T05", n_samples=40, n_jobs=1,
                       surrogate=load_surrogate(surrogate), progress=None, n_grid=40)
     steps = pd.read_csv(fold / "K1" / "iso_table.csv", dtype={"window_ms": str})

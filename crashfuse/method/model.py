@@ -18,6 +18,7 @@ import dataclasses
 import functools
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -106,6 +107,8 @@ class FittedModel:
         every CAE curve of the model is then CAE + effects (:meth:`cae_curve`).
     fit_seconds : float
         Wall time of the fit (the surrogate's excluded when it was given).
+    surrogate_file : str or None
+        Where the surrogate lives when the file was saved without it (:meth:`save`).
     """
 
     surrogate: CAESurrogate
@@ -123,6 +126,7 @@ class FittedModel:
     version: str = crashfuse.__version__
     physics: PhysicsFirst | None = None
     fit_seconds: float = 0.0
+    surrogate_file: str | None = None
 
     @property
     def inputs(self) -> str:
@@ -250,22 +254,45 @@ class FittedModel:
         flags["any"] = any(flags.values())
         return flags
 
-    def save(self, path: str | os.PathLike) -> None:
-        """Write the model file atomically (:mod:`crashfuse.io.persist`, kind ``model``)."""
-        _save("model", self, path)
+    def save(self, path: str | os.PathLike, surrogate_file: str | os.PathLike | None = None) -> None:
+        """Write the model file atomically (:mod:`crashfuse.io.persist`, kind ``model``).
+
+        With ``surrogate_file`` (the surrogate's own file, :func:`save_surrogate`) the model refers to it
+        instead of holding a copy: a fold's model file is then kilobytes, not the surrogate's ~100 MB.
+        """
+        if surrogate_file is None:
+            _save("model", self, path)
+        else:
+            _save("model", dataclasses.replace(self, surrogate=None, surrogate_file=str(surrogate_file)), path)
 
 
-def load_model(path: str | os.PathLike) -> FittedModel:
+def load_model(path: str | os.PathLike, surrogate: CAESurrogate | None = None) -> FittedModel:
     """Read a model file written by :meth:`FittedModel.save`.
+
+    Parameters
+    ----------
+    path : path-like
+    surrogate : CAESurrogate, optional
+        For a file saved without its surrogate: that surrogate (default: read from the file it names).
 
     Raises
     ------
     InputError
         Missing or unreadable file, not a crashfuse model file, another format version, an older
         pickle file, or a damaged or tampered file (a class outside the whitelist, an array that
-        does not match its checksum).
+        does not match its checksum); a referred surrogate that is missing or of another campaign.
     """
-    return _load("model", FittedModel, path)
+    model = _load("model", FittedModel, path)
+    if model.surrogate is not None:
+        return model
+    if surrogate is None:
+        if not model.surrogate_file or not Path(model.surrogate_file).is_file():
+            raise InputError(f"the model refers to its CAE surrogate file {model.surrogate_file!r}, which is not "
+                             f"there: pass it (--surrogate)", path, "surrogate")
+        surrogate = load_surrogate(model.surrogate_file)
+    if getattr(surrogate, "campaign_hash_", None) != model.campaign_hash:
+        raise InputError("the CAE surrogate was fitted on another campaign than the model", path, "surrogate")
+    return dataclasses.replace(model, surrogate=surrogate)
 
 
 def save_surrogate(surrogate: CAESurrogate, path: str | os.PathLike) -> None:

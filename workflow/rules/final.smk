@@ -27,6 +27,7 @@ rule final_model:
 rule final_auto:
     input:
         campaign=campaign_dir,
+        surrogate=f"{RESULTS}/surrogate.cfmodel",
         models=expand(f"{RESULTS}/final/{{inputs}}/K{{k}}/model.cfmodel", inputs=AUTO_INPUTS, k=config["ks"]),
     output:
         f"{RESULTS}/final/auto/auto/model.cfmodel",
@@ -38,7 +39,8 @@ rule final_auto:
 
 rule predict:
     input:
-        f"{RESULTS}/final/{{inputs}}/{{model}}/model.cfmodel",
+        model=f"{RESULTS}/final/{{inputs}}/{{model}}/model.cfmodel",
+        surrogate=f"{RESULTS}/surrogate.cfmodel",
     output:
         csv=f"{RESULTS}/predictions/{{inputs}}/{{model}}/{{condition}}.csv",
         json=f"{RESULTS}/predictions/{{inputs}}/{{model}}/{{condition}}.json",
@@ -49,7 +51,8 @@ rule predict:
     log:
         f"{RESULTS}/logs/predictions/{{inputs}}/{{model}}/{{condition}}.log",
     shell:
-        "crashfuse predict {input:q} {params.condition} --samples {params.samples} --seed {params.seed}"
+        "crashfuse predict {input.model:q} --surrogate {input.surrogate:q} {params.condition} --samples {params.samples}"
+        " --seed {params.seed}"
         " --out {output.csv:q} --json > {output.json:q} 2> {log:q}"
 
 

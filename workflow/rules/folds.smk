@@ -1,5 +1,5 @@
 # One leave-one-test-out fold (input mode x K x held-out test) as the method's steps, each a job:
-# train (the bias models fitted without the test) -> rollout (its condition predicted, with the band)
+# train (the bias models fitted without the test; its model file refers to the shared surrogate file) -> rollout (its condition predicted, with the band)
 # -> score (ISO rows, band coverage, fold JSON) and figure. A change of the ISO windows reruns only
 # score; of the Monte Carlo samples, rollout and after; of a method setting, train and after. The
 # jobs of one fold share a group, so a cluster executor can run a fold's chain as one job. With
@@ -40,6 +40,7 @@ rule train:
 rule rollout:
     input:
         campaign=campaign_dir,
+        surrogate=f"{RESULTS}/surrogate.cfmodel",
         model=fold_path("model.cfmodel"),
     output:
         prediction=fold_path("{test}_prediction.csv"),
@@ -58,7 +59,7 @@ rule rollout:
     benchmark:
         f"{RESULTS}/benchmarks/folds/{{inputs}}/{{model}}/{{test}}/rollout.tsv"
     shell:
-        "crashfuse rollout {input.model:q} {input.campaign:q} --test {wildcards.test:q}"
+        "crashfuse rollout {input.model:q} {input.campaign:q} --test {wildcards.test:q} --surrogate {input.surrogate:q}"
         " --samples {params.samples} {params.inner} --out {params.out:q} > {log:q} 2>&1"
 
 
