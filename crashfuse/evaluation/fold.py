@@ -22,6 +22,7 @@ from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import AUTO, BASELINE, SCORES, WINDOWS, effects_label, model_label, window_bounds
 from crashfuse.evaluation.records import FoldRecord
 from crashfuse.io.atomic import write_text
+from crashfuse.io.tables import read_json
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.units import G0, MS
 
@@ -150,12 +151,7 @@ def write_rollout_facts(path: str | os.PathLike, facts: dict) -> Path:
 def read_rollout_facts(path: str | os.PathLike) -> dict:
     """Read a rollout's facts; InputError names the file and the missing key."""
     path = Path(path)
-    try:
-        facts = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("expected the facts of a rollout ('crashfuse rollout' writes them)", path) from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise InputError(f"expected JSON: {err}", path) from None
+    facts = read_json(path, "expected the facts of a rollout ('crashfuse rollout' writes them)")
     missing = [k for k in _FACT_KEYS if not isinstance(facts, dict) or k not in facts]
     if missing:
         raise InputError("expected the keys of a rollout's facts", path, missing[0])

@@ -16,6 +16,7 @@ from typing import Any, Mapping
 from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import AUTO, ROW_INPUTS, SCORES, is_window, model_label, window_key
 from crashfuse.io.atomic import write_text
+from crashfuse.io.tables import read_json
 
 FOLD_SCHEMA = "crashfuse.fold/1"
 FOLD_SUFFIX = ".fold.json"
@@ -91,12 +92,7 @@ def write_fold_json(path: str | os.PathLike, record: FoldRecord) -> Path:
 def read_fold_json(path: str | os.PathLike) -> FoldRecord:
     """Read and validate a fold JSON; InputError names the file and field of any problem."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError("expected a fold JSON, but the file does not exist", path) from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise InputError(f"expected JSON: {err}", path) from None
+    doc = read_json(path, "expected a fold JSON, but the file does not exist")
     _validate_fold(doc, path)
     return FoldRecord(**{f.name: doc[f.name] for f in dataclasses.fields(FoldRecord) if f.name in doc})
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -124,3 +125,14 @@ def is_blank(value: Any) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value)) or (
         isinstance(value, str) and not value.strip()) or value is pd.NA
 
+
+
+def read_json(path: Path, missing: str) -> Any:
+    """The JSON document in ``path``; InputError naming the file when it is absent (``missing`` says what
+    was expected) or not JSON."""
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise InputError(missing, path) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise InputError(f"expected JSON: {err}", path) from None
