@@ -23,7 +23,9 @@ one-key object naming its type::
 
 Classes and functions are looked up by name in the ``types`` the caller passes (a whitelist):
 the loader imports nothing and calls no code of the file's choosing; an instance is rebuilt with
-``cls.__new__(cls)`` and its ``__dict__`` (no ``__init__``, no ``__setstate__``). Saving an object
+``cls.__new__(cls)`` and its ``__dict__`` (no ``__init__``, no ``__setstate__``). Attributes a class
+names in ``_derived_attributes`` are left out (e.g. a Cholesky factor: most of a model's bytes, and
+cheaper to recompute than to write and read); the class rebuilds them on first use. Saving an object
 whose type is not in the whitelist is a ``TypeError`` (extend the whitelist); loading a name
 outside it is an :class:`~crashfuse.errors.InputError` (a tampered or foreign file).
 """
@@ -242,6 +244,8 @@ class _Encoder:
         state = getattr(o, "__dict__", None)
         if type(state) is not dict or hasattr(t, "__slots__"):
             raise TypeError(f"cannot store a {self.names[t]}: its state is not only its __dict__")
+        derived = getattr(t, "_derived_attributes", ())
+        state = {k: v for k, v in state.items() if k not in derived}
         return {"object": {"type": self.names[t], "state": self.value(state)["dict"]}}
 
     def ndarray(self, a: np.ndarray):
