@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import time
 
 import numpy as np
 import pandas as pd
@@ -175,6 +176,8 @@ def test_fold_json_matches_the_table(result):
         assert record.iso[row.window_ms]["overall"] == pytest.approx(row.overall, abs=1e-12)
     assert record.k == 1 and record.campaign["hash"] == res.records[("state", "K1", "T08")].campaign["hash"]
     assert (out / "state" / "K1" / "T08" / record.prediction).exists()
+    start, end = record.run_time["start"], record.run_time["end"]  # the fold's run: its fit, then its rollout
+    assert time.time() - 3600 < start and end - start >= record.metrics["fit_seconds"] + record.metrics["predict_seconds"]
 
 
 def test_the_table_knows_every_input_mode():

@@ -33,7 +33,10 @@ PNG = bytes.fromhex("89504e470d0a1a0a0000000d4948445200000001000000010806000000"
                     "1f15c4890000000d49444154789c63f8ffff3f0005fe02fea7d6a4880000000049454e44ae426082")
 
 
-def make_evaluation(root: Path, seed: int = 0, settings: dict | None = None) -> pd.DataFrame:
+T0 = 1.7e9  # the folds' run times: fold (k, i) from T0 + 100 k + 10 i for 5 + i s
+
+
+def make_evaluation(root: Path, seed: int = 0, settings: dict | None = None, t0: float = T0) -> pd.DataFrame:
     """A small evaluation directory: iso_table.csv, one fold JSON + PNG + prediction CSV per fold."""
     rng = np.random.default_rng(seed)
     rows = [dict(test_id=t, inputs="paper", model=m, window_ms=w, **dict(zip(SCORES, rng.uniform(0.3, 0.95, 5))))
@@ -56,7 +59,8 @@ def make_evaluation(root: Path, seed: int = 0, settings: dict | None = None) -> 
                 settings=settings or {"trend": "constant", "nugget": 1e-6, "n_restarts": 3},
                 iso={w: {s: float(mine.at[w, s]) for s in SCORES} for w in WINDOWS},
                 metrics={"coverage_95_0_60": float(rng.uniform()), "log_marginal_likelihood": float(rng.normal())},
-                figures=["prediction.png"], prediction="prediction.csv")
+                figures=["prediction.png"], prediction="prediction.csv",
+                run_time={"start": t0 + 100 * k + 10 * i, "end": t0 + 100 * k + 11 * i + 5})
             write_fold_json(fold_dir / f"{test}.fold.json", record)
     return table
 
@@ -71,8 +75,9 @@ def _runs(client: MlflowClient, exp_id: str, view=ViewType.ACTIVE_ONLY):
     return client.search_runs([exp_id], run_view_type=view, max_results=1000)
 
 
-def check_logged(client: MlflowClient, out: dict, table: pd.DataFrame, results: Path) -> None:
-    """Runs, params, metrics, tags and artifacts as the evaluation directory says."""
+def check_logged(client: MlflowClient, out: dict, table: pd.DataFrame, results: Path, t0: float = T0) -> None:
+    """Runs, params, metrics, tags, run times and artifacts as the evaluation directory says."""
+    assert client.get_experiment(out["experiment_id"]).tags["mlflow.experimentKind"] == "custom_model_development"
     runs = _runs(client, out["experiment_id"])
     children = [r for r in runs if r.data.tags["crashfuse.role"] == "fold"]
     parents = {r.info.run_id: r for r in runs if r.data.tags["crashfuse.role"] == "parent"}
@@ -85,6 +90,9 @@ def check_logged(client: MlflowClient, out: dict, table: pd.DataFrame, results: 
         parent = parents[tags["mlflow.parentRunId"]]
         assert parent.data.tags["crashfuse.k"] == str(k)
         assert run.data.params["test_id"] == test and run.data.params["k"] == str(k)
+        i = TESTS.index(test)
+        assert (run.info.start_time, run.info.end_time) == (int((t0 + 100 * k + 10 * i) * 1000),
+                                                            int((t0 + 100 * k + 11 * i + 5) * 1000))
         for model, prefix in ((f"K{k}", "iso"), ("CAE", "cae_iso")):
             row = table[(table.test_id == test) & (table.model == model)]
             for w, s in [(w, s) for w in WINDOWS for s in SCORES]:
@@ -102,6 +110,9 @@ def check_logged(client: MlflowClient, out: dict, table: pd.DataFrame, results: 
         assert parent.data.metrics["n_folds"] == len(TESTS)
         assert [a.path for a in client.list_artifacts(parent.info.run_id)] == ["iso_table.csv"]
         assert parent.data.params["k"] == str(k) and "test_id" not in parent.data.params
+        n = len(TESTS) - 1  # the parent spans its first fold's start to its last fold's end
+        assert (parent.info.start_time, parent.info.end_time) == (int((t0 + 100 * k) * 1000),
+                                                                  int((t0 + 100 * k + 11 * n + 5) * 1000))
 
 
 def test_log_creates_runs_and_a_rerun_updates_them(tmp_path, store):
@@ -140,6 +151,17 @@ def test_changed_params_replace_the_run_without_orphans(tmp_path, store):
     check_logged(client, second, table, results)
 
 
+def test_folds_run_again_replace_their_runs_with_the_new_times(tmp_path, store):
+    results = tmp_path / "results"
+    make_evaluation(results)
+    client = MlflowClient(tracking_uri=store)
+    first = tracking.log_evaluation(results, tracking_uri=store, project_dir=tmp_path)
+    table = make_evaluation(results, t0=T0 + 3600)
+    second = tracking.log_evaluation(results, tracking_uri=store, project_dir=tmp_path)
+    assert set(second["folds"].values()).isdisjoint(first["folds"].values())
+    check_logged(client, second, table, results, t0=T0 + 3600)
+
+
 def test_inconsistent_evaluations_are_refused_before_logging(tmp_path, store):
     results = tmp_path / "results"
     make_evaluation(results)
@@ -158,6 +180,13 @@ def test_inconsistent_evaluations_are_refused_before_logging(tmp_path, store):
     with pytest.raises(InputError) as err:
         tracking.log_evaluation(results, tracking_uri=store, project_dir=tmp_path)
     assert err.value.field == "iso.0-60.overall"
+
+    doc["iso"]["0-60"]["overall"] -= 0.01
+    doc["run_time"] = {"start": doc["run_time"]["end"] + 1, "end": doc["run_time"]["end"]}
+    fold.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as err:
+        tracking.log_evaluation(results, tracking_uri=store, project_dir=tmp_path)
+    assert err.value.field == "run_time" and "start <= end" in str(err.value)
 
     fold.unlink()
     with pytest.raises(InputError) as err:

@@ -59,8 +59,10 @@ def rollout_fold(model, campaign, test_id: str, n_samples: int, band: str = "tes
     prediction : Prediction
     facts : dict
         What the score needs besides the prediction table: ``test_id, inputs, k, model, seed,
-        campaign, settings`` and ``metrics`` (fit and predict seconds, cluster switches, GPs per
-        branch, extrapolation flag, and ``inner_error`` with ``inner``; JSON-ready).
+        campaign, settings``, ``metrics`` (fit and predict seconds, cluster switches, GPs per
+        branch, extrapolation flag, and ``inner_error`` with ``inner``) and ``run_time`` (``start``:
+        the fit's start, ``end``: now, UNIX seconds; empty for a model that does not know its start);
+        JSON-ready.
     """
     from crashfuse.method.rollout import predict  # the GP stack: not for a score job
     from crashfuse.method.selection import inner_error
@@ -87,7 +89,8 @@ def rollout_fold(model, campaign, test_id: str, n_samples: int, band: str = "tes
     facts = {"test_id": test_id, "inputs": config.inputs, "k": int(config.k),
              "model": model_label(config.k, effects_label(config.effects)), "seed": int(config.random_state),
              "campaign": {"name": campaign.root.name if campaign.root else "campaign", "hash": model.campaign_hash},
-             "settings": settings, "metrics": metrics}
+             "settings": settings, "metrics": metrics,
+             "run_time": {"start": model.fit_started, "end": time.time()} if model.fit_started else {}}
     return pred, facts
 
 
@@ -252,7 +255,7 @@ def score_fold(campaign, test_id: str, frame, facts: dict, windows=WINDOWS, cae=
         iso={row["window_ms"]: {s: row[s] for s in SCORES} for row in iso},
         metrics={"coverage_95_0_60": cov, "coverage_latent_95_0_60": cov_latent,
                  **{k: float(v) for k, v in metrics.items() if k != "inner_error"}},
-        figures=[f"{test_id}.png"], prediction=f"{test_id}_prediction.csv",
+        figures=[f"{test_id}.png"], prediction=f"{test_id}_prediction.csv", run_time=dict(facts.get("run_time", {})),
     )
     return {"iso": iso, "cae_iso": cae_iso, "coverage": coverage, "record": record}
 

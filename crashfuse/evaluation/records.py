@@ -52,6 +52,9 @@ class FoldRecord:
         Figure files, relative to the JSON's folder (or absolute).
     prediction : str or None
         The fold's prediction CSV, relative to the JSON's folder (or absolute).
+    run_time : dict
+        ``start`` (the fit's) and ``end`` (the rollout's) in UNIX seconds; empty when unknown. The
+        fold's tracked run carries them as its start and end time.
     """
 
     test_id: str
@@ -65,6 +68,7 @@ class FoldRecord:
     metrics: dict[str, float] = dataclasses.field(default_factory=dict)
     figures: list[str] = dataclasses.field(default_factory=list)
     prediction: str | None = None
+    run_time: dict[str, float] = dataclasses.field(default_factory=dict)
 
     @property
     def model(self) -> str:
@@ -131,6 +135,11 @@ def _validate_fold(doc: Any, path: Path) -> None:
         fail("figures", f"expected a list of file paths, got {figures!r}")
     if doc.get("prediction") is not None and not isinstance(doc["prediction"], str):
         fail("prediction", f"expected a file path or null, got {doc['prediction']!r}")
+    run_time = doc.get("run_time", {})
+    if run_time:
+        _check_mapping(run_time, ("start", "end"), path, "run_time", _is_number, "UNIX seconds")
+        if not 0 < run_time["start"] <= run_time["end"]:
+            fail("run_time", f"expected 0 < start <= end, got {run_time!r}")
 
 
 def _is_int(value: Any) -> bool:

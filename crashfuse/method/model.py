@@ -107,6 +107,8 @@ class FittedModel:
         every CAE curve of the model is then CAE + effects (:meth:`cae_curve`).
     fit_seconds : float
         Wall time of the fit (the surrogate's excluded when it was given).
+    fit_started : float
+        When the fit started, UNIX seconds (0: unknown): a tracked fold run starts then.
     surrogate_file : str or None
         Where the surrogate lives when the file was saved without it (:meth:`save`).
     """
@@ -126,6 +128,7 @@ class FittedModel:
     version: str = crashfuse.__version__
     physics: PhysicsFirst | None = None
     fit_seconds: float = 0.0
+    fit_started: float = 0.0
     surrogate_file: str | None = None
 
     @property
@@ -356,7 +359,7 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
     ValueError
         ``physics`` fitted on other tests or other effects than this fit's.
     """
-    t0 = time.perf_counter()
+    t0, started = time.perf_counter(), time.time()
     if not isinstance(config, MethodConfig):
         raise TypeError(f"expected a MethodConfig, got {type(config).__name__}")
     if not campaign.cae:
@@ -381,7 +384,7 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         groups={b: sorted(set(data.branch(b).groups)) for b in BRANCHES}, missing=dict(data.missing),
         ranges=_ranges(campaign, train, data), companions=_companions(campaign),
         categories=dict(data.categories), campaign_hash=campaign.content_hash(), physics=physics,
-        fit_seconds=time.perf_counter() - t0,
+        fit_seconds=time.perf_counter() - t0, fit_started=started,
     )
 
 

@@ -38,6 +38,8 @@ PREFIX = "crashfuse."
 ROLE, PARENT, FOLD = PREFIX + "role", "parent", "fold"
 KEY_TAGS = (ROLE, PREFIX + "inputs", PREFIX + "k", PREFIX + "test_id")
 PARENT_RUN = "mlflow.parentRunId"
+# The UI opens an experiment of this kind on its runs, not on the GenAI overview (MLflow 3)
+EXPERIMENT_KIND = {"mlflow.experimentKind": "custom_model_development"}
 FIXED_PARAMS = ("k", "test_id", "inputs", "seed", "campaign", *CONDITIONS)
 ISO_TOLERANCE = 1e-5  # fold JSON vs iso_table.csv, which evaluate writes with 6 significant digits
 BATCH = 100  # MLflow's limit of params (and tags) per log_batch call
@@ -65,6 +67,11 @@ class Fold:
     def metrics(self) -> dict[str, float]:
         """ISO scores of the corrected prediction and of CAE, fit diagnostics and coverage."""
         return {**self.record.iso_metrics(), **self.cae_iso, **self.record.metrics}
+
+    def run_time(self) -> tuple[int, int] | None:
+        """The fold's (start, end) in UNIX milliseconds, None when its record does not know them."""
+        t = self.record.run_time
+        return (int(t["start"] * 1000), int(t["end"] * 1000)) if t else None
 
     def files(self) -> dict[str, list[Path]]:
         """Artifact folder -> files: figures, the prediction CSV and the fold JSON itself."""
@@ -283,13 +290,14 @@ def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = No
         name = AUTO if model == AUTO else f"{inputs} K={k}"
         tags = {**common, **dict(zip(KEY_TAGS, key)), "mlflow.runName": name}
         parent = _upsert(client, exp_id, existing.get(key, []), tags, _parent_params(group), _mean_metrics(group),
-                         {"": [iso_file]})
+                         {"": [iso_file]}, _span(group))
         out["parents"][f"{inputs}/{model}"] = parent
         for fold in group:
             key = (FOLD, inputs, str(k), fold.record.test_id)
             tags = {**common, **dict(zip(KEY_TAGS, key)), PARENT_RUN: parent,
                     "mlflow.runName": f"{fold.record.test_id} {name}"}
-            run = _upsert(client, exp_id, existing.get(key, []), tags, fold.params(), fold.metrics(), fold.files())
+            run = _upsert(client, exp_id, existing.get(key, []), tags, fold.params(), fold.metrics(), fold.files(),
+                          fold.run_time())
             out["folds"][f"{inputs}/{model}/{fold.record.test_id}"] = run
     return out
 
@@ -299,6 +307,14 @@ def _groups(folds: list[Fold]) -> dict[tuple[str, str], list[Fold]]:
     for fold in folds:
         out.setdefault(fold.key[:2], []).append(fold)
     return out
+
+
+def _span(group: list[Fold]) -> tuple[int, int] | None:
+    """A parent's (start, end): its first fold's start to its last fold's end; None if any is unknown."""
+    times = [fold.run_time() for fold in group]
+    if None in times:
+        return None
+    return min(t[0] for t in times), max(t[1] for t in times)
 
 
 def _parent_params(group: list[Fold]) -> dict[str, str]:
@@ -328,13 +344,16 @@ def _experiment(client: MlflowClient, name: str, artifact_location: str | None) 
     found = client.get_experiment_by_name(name)
     if found is None:
         try:
-            return client.create_experiment(name, artifact_location=artifact_location)
+            return client.create_experiment(name, artifact_location=artifact_location, tags=EXPERIMENT_KIND)
         except MlflowException as err:
             if err.error_code != "RESOURCE_ALREADY_EXISTS":
                 raise
             found = client.get_experiment_by_name(name)  # another process created it meanwhile
     if found.lifecycle_stage == "deleted":
         client.restore_experiment(found.experiment_id)
+    for key, value in EXPERIMENT_KIND.items():
+        if found.tags.get(key) != value:  # an experiment logged before the tag existed
+            client.set_experiment_tag(found.experiment_id, key, value)
     return found.experiment_id
 
 
@@ -355,18 +374,21 @@ def _existing_runs(client: MlflowClient, exp_id: str) -> dict[tuple, list]:
 
 
 def _upsert(client: MlflowClient, exp_id: str, found: list, tags: dict, params: dict, metrics: dict,
-            files: dict[str, list[Path]]) -> str:
+            files: dict[str, list[Path]], span: tuple[int, int] | None = None) -> str:
     """Update the run keyed by ``tags`` or create it; return its id.
 
-    MLflow params are immutable, so a run whose params changed (a new config) is replaced: the
-    old one is deleted (restorable until ``mlflow gc``) and a fresh run takes its key.
+    MLflow params and a run's start time are immutable, so a run whose params changed (a new
+    config) or whose fold ran again (``span``: its start and end, UNIX ms) is replaced: the old one
+    is deleted (restorable until ``mlflow gc``) and a fresh run takes its key.
     """
-    keep = next((r for r in found if r.data.params == params), None)
+    keep = next((r for r in found if r.data.params == params
+                 and (span is None or r.info.start_time == span[0])), None)
     for run in found:
         if run is not keep:
             client.delete_run(run.info.run_id)
     if keep is None:
-        run_id = client.create_run(exp_id, tags=tags, run_name=tags["mlflow.runName"]).info.run_id
+        run_id = client.create_run(exp_id, start_time=span and span[0], tags=tags,
+                                   run_name=tags["mlflow.runName"]).info.run_id
         old_metrics = {}
     else:
         run_id, old_metrics = keep.info.run_id, keep.data.metrics
@@ -379,5 +401,5 @@ def _upsert(client: MlflowClient, exp_id: str, found: list, tags: dict, params: 
     for folder, paths in files.items():
         for path in paths:
             client.log_artifact(run_id, str(path), artifact_path=folder or None)
-    client.set_terminated(run_id, "FINISHED")
+    client.set_terminated(run_id, "FINISHED", end_time=span and span[1])
     return run_id
