@@ -424,6 +424,28 @@ def _track(args) -> int:
     return 0
 
 
+def _register(args) -> int:
+    import pandas as pd
+
+    from crashfuse.io.atomic import write_text
+    from crashfuse.reporting.served import register_model
+
+    try:
+        example = pd.DataFrame(json.loads(args.conditions_json))
+    except (json.JSONDecodeError, ValueError, TypeError) as err:
+        raise InputError(f"expected a JSON list of conditions: {err}", field="--conditions-json") from None
+    try:
+        registered = register_model(args.model, args.surrogate, args.campaign_name, inputs=args.inputs,
+                                    model=args.label, example=example, artifacts=args.artifacts,
+                                    tracking_uri=args.tracking_uri, n_samples=args.samples, random_state=args.seed)
+    except ValueError as err:  # a condition the served model could not take
+        raise InputError(str(err), field="--conditions-json") from None
+    if args.out:
+        write_text(args.out, json.dumps(registered, indent=2, sort_keys=True) + "\n")
+    print(f"registered {registered['model_uri']} (run {registered['run_id']}) in {registered['tracking_uri']}")
+    return 0
+
+
 def _positive(text: str) -> int:
     """argparse type: an integer >= 1."""
     try:
@@ -483,7 +505,7 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (_add_pulse_metrics, _add_iso_score, _add_barrier_model, _add_world, _add_fit, _add_predict,
                 _add_rollout, _add_auto, _add_select, _add_score, _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report,
-                _add_plot, _add_track):
+                _add_plot, _add_track, _add_register):
         add(sub)
     return p
 
@@ -804,6 +826,26 @@ def _add_track(sub) -> None:
                    help="the fold JSON files to log (default: every *.fold.json below the results folder)")
     s.add_argument("--out", default=None, help="write the logged run ids as JSON here")
     s.set_defaults(func=_track)
+
+
+def _add_register(sub) -> None:
+    s = sub.add_parser("register", help="log a final model to MLflow as a pyfunc model and register it "
+                       "(mlflow models serve answers with pulses)")
+    s.add_argument("model", help="model file (.cfmodel) fitted on every test")
+    s.add_argument("--surrogate", required=True, help="the CAE surrogate file the model refers to")
+    s.add_argument("--campaign-name", required=True, help="names the experiment and the registered model")
+    s.add_argument("--inputs", required=True, help="the model's input mode (paper, state or auto)")
+    s.add_argument("--label", required=True, help="the model's label (K1, K2 ... or auto)")
+    s.add_argument("--conditions-json", required=True,
+                   help="conditions as a JSON list of objects (v0_mph, front_weight_lb, rear_weight_lb, "
+                        "powertrain, drive, name): the input example")
+    s.add_argument("--artifacts", nargs="*", default=[], help="further files of the run (predictions, figures)")
+    s.add_argument("--tracking-uri", default=None, help="MLflow tracking URI (default: MLFLOW_TRACKING_URI, "
+                   "else sqlite:///mlflow.db in the working folder)")
+    s.add_argument("--samples", type=_positive, default=1000, help="the served model's Monte Carlo samples")
+    s.add_argument("--seed", type=_seed, default=0, help="the served model's seed (default 0)")
+    s.add_argument("--out", default=None, help="write name, version, run id and model URI as JSON here")
+    s.set_defaults(func=_register)
 
 
 # The flag of each setting that a command's InputError may name: the library names the setting

@@ -278,7 +278,7 @@ def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = No
     client = MlflowClient(tracking_uri=uri)
     campaign = folds[0].record.campaign
     name = experiment_name(campaign["name"], campaign["hash"])
-    exp_id = _experiment(client, name, _artifact_location(uri, name))
+    exp_id = campaign_experiment(client, uri, campaign["name"], campaign["hash"])
     common = {PREFIX + "campaign": campaign["name"], PREFIX + "campaign_hash": campaign["hash"],
               PREFIX + "git_commit": git_commit(project_dir), PREFIX + "config_hash": config_hash(config)}
     existing = _existing_runs(client, exp_id)
@@ -330,6 +330,12 @@ def _mean_metrics(group: list[Fold]) -> dict[str, float]:
     names = group[0].metrics()
     means = {m: float(np.mean([f.metrics()[m] for f in group])) for m in names}
     return {**means, "n_folds": float(len(group))}
+
+
+def campaign_experiment(client: MlflowClient, uri: str, campaign_name: str, campaign_hash: str) -> str:
+    """The id of the campaign's experiment (:func:`experiment_name`), created or restored as needed."""
+    name = experiment_name(campaign_name, campaign_hash)
+    return _experiment(client, name, _artifact_location(uri, name))
 
 
 def _artifact_location(uri: str, name: str) -> str | None:

@@ -120,10 +120,25 @@ def prediction_label(wildcards):
     return "auto" if wildcards.model == "auto" else f"{wildcards.inputs} K = {wildcards.model[1:]}"
 
 
-def prediction_files(suffix):
-    """`<results>/predictions/<inputs>/<model>/<condition><suffix>` of every configured model and condition."""
-    models = [("auto", "auto") if m == "auto" else Path(m).parts for m in PREDICT["models"]]
+PREDICT_MODELS = [("auto", "auto") if m == "auto" else Path(m).parts for m in PREDICT["models"]]
+
+
+def prediction_files(suffix, models=PREDICT_MODELS):
+    """`<results>/predictions/<inputs>/<model>/<condition><suffix>` of the configured (or given) models and
+    every configured condition."""
     return [f"{RESULTS}/predictions/{i}/{m}/{c}{suffix}" for i, m in models for c in _CONDITIONS]
+
+
+def registration(inputs, model):
+    return f"{RESULTS}/registered/{inputs}/{model}.json"
+
+
+def registration_inputs(wildcards):
+    """A final model's registration waits for the tracking step and the model registered before it:
+    one MLflow writer at a time (SQLite)."""
+    me = PREDICT_MODELS.index((wildcards.inputs, wildcards.model))
+    before = [registration(*PREDICT_MODELS[me - 1])] if me else []
+    return [f"{RESULTS}/tracking.json", *before]
 
 
 def all_outputs(wildcards):
@@ -137,6 +152,7 @@ def all_outputs(wildcards):
     out += prediction_files(".png")
     if config["tracking"]["enabled"]:
         out.append(f"{RESULTS}/tracking.json")
+        out += [registration(*m) for m in PREDICT_MODELS]
     if config["diagnosis"]["enabled"]:
         out.append(f"{RESULTS}/diagnosis/diagnosis.json")
     if config["validation"]["enabled"]:
