@@ -86,7 +86,10 @@ def summary(results: Path) -> str:
     if tracking.is_file():
         logged = json.loads(tracking.read_text())
         lines += [f"MLflow store:     {logged['tracking_uri']} (experiment {logged['experiment_name']})",
-                  f"MLflow UI:        mlflow ui --backend-store-uri {logged['tracking_uri']}"]
+                  f"MLflow UI:        mlflow ui --backend-store-uri {logged['tracking_uri']}, then "
+                  f"http://127.0.0.1:5000/#/experiments/{logged['experiment_id']}?workflowType=machine_learning"]
+    lines += [f"Registered model: {json.loads(p.read_text())['model_uri']} ({p})"
+              for p in sorted((results / "registered").glob("*/*.json"))]
     return "\n".join(lines)
 
 

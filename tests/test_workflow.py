@@ -9,8 +9,10 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -216,21 +218,50 @@ def test_slurm_profile_targets_rules_of_this_workflow(tmp_path):
 
 
 @pytest.mark.slow
+def _finished_models(log: str) -> list[str]:
+    """The model files of the train jobs Snakemake's log reports finished."""
+    outputs = dict((jobid, out) for out, jobid in
+                   re.findall(r"rule train:\n(?:    .*\n)*?    output: (\S+)\n(?:    .*\n)*?    jobid: (\d+)", log))
+    return [outputs[j] for j in re.findall(r"Finished jobid: (\d+) \(Rule: train\)", log)]
+
+
+def _killed_among_the_folds(command, env, workdir: Path, n_models: int) -> dict:
+    """Start ``command``, kill it (SIGTERM to its process group) once its first train job has finished;
+    return the fold models Snakemake reported finished, with their modification times."""
+    log = workdir / "killed.log"
+    with log.open("w") as out:
+        run = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+        deadline = time.monotonic() + 300
+        while not _finished_models(log.read_text()):
+            assert run.poll() is None and time.monotonic() < deadline, "no train job finished before the run ended"
+            time.sleep(0.1)
+        os.killpg(run.pid, signal.SIGTERM)
+        assert run.wait(timeout=120) != 0
+    left = {workdir / p: (workdir / p).stat().st_mtime_ns for p in _finished_models(log.read_text())}
+    assert 0 < len(left) < n_models  # killed in the middle of the folds
+    return left
+
+
 def test_end_to_end_on_the_test_config(tmp_path):
-    """`python -m crashfuse.reproduce` on config/test.yaml, then: nothing to redo; a changed setting
-    reruns only what depends on it."""
+    """`python -m crashfuse.reproduce` on config/test.yaml, killed among the folds and started again
+    (it finishes only what is missing), then: nothing to redo; a changed setting reruns only what
+    depends on it."""
     config = yaml.safe_load(TEST_CONFIG.read_text())
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}  # the embedded store
     # 4 parallel jobs: folds run concurrently, the MLflow logging step must still lose nothing.
-    done = subprocess.run([sys.executable, "-m", "crashfuse.reproduce", "--configfile", str(TEST_CONFIG),
-                           "--workdir", str(tmp_path), "--cores", "4"], capture_output=True, text=True, timeout=600,
-                          env=env)
-    assert done.returncode == 0, done.stdout + done.stderr
+    command = [sys.executable, "-m", "crashfuse.reproduce", "--configfile", str(TEST_CONFIG),
+               "--workdir", str(tmp_path), "--cores", "4"]
     results = tmp_path / config["results"]
+    n_tests = len(config["tests"])
+    left = _killed_among_the_folds(command, env, tmp_path, n_tests * len(config["ks"]) * len(config["inputs"]))
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert {p: p.stat().st_mtime_ns for p in left} == left  # the folds fitted before the kill were not redone
+    for model in left:
+        assert f"--out {model.relative_to(tmp_path)}" not in done.stdout + done.stderr
     iso = pd.read_csv(results / "iso_table.csv", dtype={"test_id": str})
     assert sorted(iso["test_id"].unique()) == sorted(config["tests"])
     assert sorted(iso["model"].unique()) == ["CAE"] + [f"K{k}" for k in config["ks"]] + ["auto"]
-    n_tests = len(config["tests"])
     assert len(iso) == n_tests * (len(config["inputs"]) * (1 + len(config["ks"])) + 2) * 3  # auto: CAE and auto
     assert iso["overall"].between(0, 1).all()
     for test in config["tests"]:  # the auto rows are the rows of the candidate its auto job chose
@@ -250,10 +281,16 @@ def test_end_to_end_on_the_test_config(tmp_path):
     logged = json.loads((results / "tracking.json").read_text())
     assert len(logged["folds"]) == n_tests * (len(config["ks"]) * len(config["inputs"]) + 1)
     assert logged["tracking_uri"] == f"sqlite:///{tmp_path / 'mlflow.db'}"
-    runs = MlflowClient(logged["tracking_uri"]).search_runs([logged["experiment_id"]])
+    client = MlflowClient(logged["tracking_uri"])
+    runs = client.search_runs([logged["experiment_id"]])
     n_parents = len(config["ks"]) * len(config["inputs"]) + 1
-    assert len(runs) == n_parents + len(logged["folds"])
+    assert len(runs) == n_parents + len(logged["folds"]) + 1  # and the final auto model's run
     assert sum(r.data.tags.get("crashfuse.role") == "fold" for r in runs) == len(logged["folds"])
+    folds = [r for r in runs if r.data.tags.get("crashfuse.role") == "fold"]
+    assert all(r.info.end_time - r.info.start_time >= 1000 * r.data.metrics["fit_seconds"] for r in folds)  # real times
+    registered = json.loads((results / "registered" / "auto" / "auto.json").read_text())
+    assert registered["model_uri"] == "models:/crashfuse-paper/1"  # the generated campaign's folder: paper
+    assert client.get_run(registered["run_id"]).info.experiment_id == logged["experiment_id"]
 
     diagnosis = json.loads((results / "diagnosis" / "diagnosis.json").read_text())
     assert {"verdict", "effects", "regions", "shrink"} <= set(diagnosis)
@@ -278,4 +315,4 @@ def test_end_to_end_on_the_test_config(tmp_path):
     uri = dict(config, tracking={"enabled": True, "uri": f"sqlite:///{tmp_path / 'other.db'}"})
     (tmp_path / "uri.yaml").write_text(yaml.safe_dump(uri))
     counts = job_counts(snakemake(tmp_path, "-n", configfile=tmp_path / "uri.yaml").stdout)
-    assert set(counts) == {"track", "all"}
+    assert set(counts) == {"track", "register", "all"}
