@@ -139,19 +139,19 @@ def register_model(model_file, surrogate_file, campaign_name: str, *, inputs: st
     example = _checked(example).head(1)  # before anything is written
     uri = resolve_tracking_uri(tracking_uri)
     client = MlflowClient(tracking_uri=uri)
-    fitted = load_model(model_file, load_surrogate(surrogate_file))
     name = registered_name(campaign_name, inputs, model)
     sha = hashlib.sha256(Path(model_file).read_bytes()).hexdigest()
     found = _version_of(client, name, sha)
     if found is not None:
         return _answer(found, uri)
+    fitted = load_model(model_file, load_surrogate(surrogate_file))
     exp_id = campaign_experiment(client, uri, campaign_name, fitted.campaign_hash)
     probe = PulseModel(n_samples=n_samples, random_state=random_state)
     probe.model_ = fitted  # infers the output schema; the logged instance loads its model from the artifacts
     mlflow.set_tracking_uri(uri)
     tags = {ROLE: FINAL, PREFIX + "inputs": inputs, PREFIX + "k": model, MODEL_SHA: sha,
             PREFIX + "campaign": campaign_name, PREFIX + "campaign_hash": fitted.campaign_hash}
-    with mlflow.start_run(experiment_id=exp_id, run_name=f"final {inputs} {model}", tags=tags) as run:
+    with mlflow.start_run(experiment_id=exp_id, run_name=f"final {inputs} {model}", tags=tags):
         mlflow.log_params({"inputs": inputs, "model": model, "n_samples": n_samples, "seed": random_state,
                            "training_tests": ",".join(fitted.training_tests)})
         for path in artifacts:
