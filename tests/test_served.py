@@ -4,10 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-import socket
-import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
@@ -28,6 +25,7 @@ from crashfuse.reporting.served import register_model  # noqa: E402
 from crashfuse.units import LB, MPH  # noqa: E402
 from crashfuse.world.generate import build  # noqa: E402
 from crashfuse.world.presets import resolve  # noqa: E402
+from servers import free_port, serving  # noqa: E402
 
 SAMPLES = 20
 INSIDE = {"name": "inside", "v0_mph": 25.0, "front_weight_lb": 2100.0, "rear_weight_lb": 1560.0,
@@ -108,36 +106,18 @@ def test_bad_conditions_are_refused_naming_the_column(tmp_path, files, capsys):
     assert not (tmp_path / "mlflow.db").exists()  # nothing logged
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow
 def test_mlflow_models_serve_answers_a_prediction_request(registered, files, tmp_path):
     uri, out = registered
     bin_dir = Path(sys.executable).parent
     if not (bin_dir / "mlflow").exists():
         pytest.skip("the mlflow command is not installed beside this Python")
-    port = _free_port()
-    log = (tmp_path / "serve.log").open("w")
-    server = subprocess.Popen(
-        [str(bin_dir / "mlflow"), "models", "serve", "-m", out["model_uri"], "--env-manager", "local",
-         "-h", "127.0.0.1", "-p", str(port)],
-        stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-        env={**os.environ, "MLFLOW_TRACKING_URI": uri, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"})
-    try:
-        url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 120
-        while True:
-            assert server.poll() is None, (tmp_path / "serve.log").read_text()[-2000:]
-            try:
-                with urllib.request.urlopen(url + "/ping", timeout=2):
-                    break
-            except OSError:
-                assert time.monotonic() < deadline, "the model server did not come up in 120 s"
-                time.sleep(0.5)
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    command = [str(bin_dir / "mlflow"), "models", "serve", "-m", out["model_uri"], "--env-manager", "local",
+               "-h", "127.0.0.1", "-p", str(port)]
+    env = {**os.environ, "MLFLOW_TRACKING_URI": uri, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    with serving(command, tmp_path / "serve.log", env, url + "/ping"):
         body = {"dataframe_split": {"columns": list(INSIDE), "data": [list(INSIDE.values())]}}
         request = urllib.request.Request(url + "/invocations", data=json.dumps(body).encode(),
                                          headers={"Content-Type": "application/json"})
@@ -147,11 +127,3 @@ def test_mlflow_models_serve_answers_a_prediction_request(registered, files, tmp
         assert (rows["condition"] == "inside").all() and len(rows) == len(want.time)
         np.testing.assert_allclose(rows["decel_g"], want.frame()["decel_g"], rtol=1e-12)
         np.testing.assert_allclose(rows["decel_hi_g"], want.frame()["decel_hi_g"], rtol=1e-12)
-    finally:
-        os.killpg(server.pid, 15)
-        try:
-            server.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(server.pid, 9)
-            server.wait(timeout=10)
-        log.close()

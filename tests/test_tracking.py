@@ -5,11 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-import socket
-import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +19,7 @@ from mlflow.tracking import MlflowClient  # noqa: E402
 from crashfuse.reporting import tracking  # noqa: E402
 from crashfuse.errors import InputError  # noqa: E402
 from crashfuse.evaluation.records import FoldRecord, write_fold_json  # noqa: E402
+from servers import free_port, serving  # noqa: E402
 
 SCORES = ["overall", "corridor", "phase", "magnitude", "slope"]
 WINDOWS = ["0-20", "0-40", "0-60"]
@@ -236,43 +233,19 @@ def test_tracking_uri_precedence(tmp_path, monkeypatch):
     assert tracking.resolve_tracking_uri("sqlite:////x/y.db", tmp_path) == "sqlite:////x/y.db"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait_up(url: str, server: subprocess.Popen, timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if server.poll() is not None:
-            raise AssertionError(f"mlflow server exited with code {server.returncode}")
-        try:
-            with urllib.request.urlopen(url + "/health", timeout=2) as r:
-                if r.status == 200:
-                    return
-        except OSError:
-            time.sleep(0.5)
-    raise AssertionError(f"mlflow server not up within {timeout} s")
-
-
 @pytest.mark.slow
 def test_logging_to_a_real_tracking_server(tmp_path, monkeypatch):
     mlflow_bin = Path(sys.executable).with_name("mlflow")
     if not mlflow_bin.exists():
         pytest.skip("the mlflow command is not installed beside this Python")
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
-    log = (tmp_path / "server.log").open("w")
-    server = subprocess.Popen(
-        [str(mlflow_bin), "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
-         "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}", "--artifacts-destination",
-         str(tmp_path / "server-artifacts")],
-        stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-        # No telemetry, and no background job runner (a second process this test does not need).
-        env={**os.environ, "MLFLOW_DISABLE_TELEMETRY": "true", "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"})
-    try:
-        _wait_up(url, server, timeout=90)
+    command = [str(mlflow_bin), "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
+               "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}", "--artifacts-destination",
+               str(tmp_path / "server-artifacts")]
+    # No telemetry, and no background job runner (a second process this test does not need).
+    env = {**os.environ, "MLFLOW_DISABLE_TELEMETRY": "true", "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+    with serving(command, tmp_path / "server.log", env, url + "/health", timeout=90):
         results = tmp_path / "results"
         table = make_evaluation(results)
         monkeypatch.setenv("MLFLOW_TRACKING_URI", url)  # the environment names the server
@@ -281,11 +254,3 @@ def test_logging_to_a_real_tracking_server(tmp_path, monkeypatch):
         check_logged(MlflowClient(tracking_uri=url), out, table, results)
         assert any((tmp_path / "server-artifacts").rglob("prediction.png"))  # stored by the server
         assert tracking.log_evaluation(results, project_dir=tmp_path) == out
-    finally:
-        os.killpg(server.pid, 15)
-        try:
-            server.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(server.pid, 9)
-            server.wait(timeout=10)
-        log.close()
