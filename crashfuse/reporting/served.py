@@ -22,6 +22,7 @@ from mlflow.models import infer_signature
 from mlflow.tracking import MlflowClient
 
 import crashfuse
+from crashfuse.evaluation.iso_table import AUTO
 from crashfuse.reporting.tracking import PREFIX, ROLE, campaign_experiment, resolve_tracking_uri
 
 __all__ = ["INPUT_COLUMNS", "OPTIONAL_COLUMNS", "PulseModel", "register_model", "registered_name"]
@@ -101,7 +102,7 @@ def _checked(frame) -> pd.DataFrame:
 def registered_name(campaign_name: str, inputs: str, model: str) -> str:
     """``crashfuse-<campaign>`` for the ``auto`` model, ``crashfuse-<campaign>-<inputs>-<model>`` otherwise."""
     base = f"crashfuse-{campaign_name}"
-    return base if model == "auto" else f"{base}-{inputs}-{model}"
+    return base if model == AUTO else f"{base}-{inputs}-{model}"
 
 
 def register_model(model_file, surrogate_file, campaign_name: str, *, inputs: str, model: str,
