@@ -12,8 +12,9 @@ $(VENV)/.runtime: pyproject.toml constraints.txt | $(VENV)/bin/python
 	$(PIP) -e .
 	touch $@
 
-$(VENV)/.test: $(VENV)/.runtime
-	$(PIP) -e '.[test]'
+$(VENV)/.test: $(VENV)/.runtime lsdyna-requirements.txt
+	$(PIP) -e '.[test,slurm,team]'
+	$(PIP) --no-deps -r lsdyna-requirements.txt
 	touch $@
 
 ## reproduce: run the whole workflow on the embedded default campaign

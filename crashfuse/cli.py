@@ -35,7 +35,8 @@ def _pulse_metrics(args) -> int:
     from crashfuse.io.loading import load_pulses
     from crashfuse.signals.metrics import pulse_metrics
 
-    rows = [pulse_metrics(p) for p in load_pulses(args.path, cfc=None)]
+    lsdyna = {"lsdyna_source": args.lsdyna_source, "lsdyna_units": args.lsdyna_units, "mass_kg": args.mass_kg}
+    rows = [pulse_metrics(p) for p in load_pulses(args.path, cfc=None, lsdyna=lsdyna)]
     if args.json:
         _print_json(rows)
     else:
@@ -527,9 +528,14 @@ def _add_iso_table(s) -> None:
 
 
 def _add_pulse_metrics(sub) -> None:
-    s = sub.add_parser("pulse-metrics", help="pulse metrics of every run in a campaign, NHTSA EV5 or ISO-MME folder")
-    s.add_argument("path", help="campaign folder, NHTSA EV5 test folder or ISO-MME test folder")
+    s = sub.add_parser("pulse-metrics", help="pulse metrics of every run in a campaign, NHTSA EV5 or ISO-MME folder "
+                                             "or LS-DYNA binout")
+    s.add_argument("path", help="campaign folder, NHTSA EV5 test folder, ISO-MME test folder or LS-DYNA binout")
     s.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
+    s.add_argument("--lsdyna-source", metavar="SOURCE",
+                   help="binout only: rwforc[:<wall id>], matsum:<part id> or nodout:<node id>[:velocity]")
+    s.add_argument("--lsdyna-units", metavar="L-T-M", help="binout only: the model's unit system, e.g. mm-ms-kg")
+    s.add_argument("--mass-kg", type=float, help="binout only: the run's mass in kg")
     s.set_defaults(func=_pulse_metrics)
 
 

@@ -133,6 +133,30 @@ def write_ev5(folder: Path, spec: EV5Spec) -> EV5Written:
     return EV5Written(folder, path, pulse, skipped, barrier, data)
 
 
+
+def write_ev5_pulse(folder: Path, test_number: int, time: np.ndarray, decel: np.ndarray, speed_kmh: float,
+                    weight_kg: float, rear_share: float, lead: int = 20) -> Path:
+    """An EV5 folder holding one rear-floor X accelerometer that records ``decel`` (m/s^2, t = 0 at contact)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    dt = float(time[1] - time[0])
+    accel = np.concatenate([np.zeros(lead), -np.asarray(decel) / G0])  # X acceleration: negative while slowing
+    delt_us = round(dt * 1e6)
+    row = _ev5_row(1, 1, "AC", "FLRR", "XG", "G'S", -lead, accel.size - lead - 1, delt_us, "AM", "P", "REAR FLOOR X")
+    stamps = (np.arange(accel.size) - lead) * delt_us * 1e-6
+    _write(folder / f"v{test_number}.001", [f"{t:.6f}\t{a:.6f}" for t, a in zip(stamps, accel)], False)
+    wheelbase = 2800
+    header = [
+        "----- EV5 -----", "----- TEST -----",
+        f"V5|FAKE TEST|OBJ|01/JAN/2020|LAB|C1|R1|NCA|VTB|CON|DRY|20|OTH|OTH|{speed_kmh:.2f}|0|0|0|1|NONE",
+        "----- VEHICLE -----",
+        f"1|16|03|2020|M1|4S|VIN123|4CIF|2.5|AF|{weight_kg:.0f}|{weight_kg - 100:.0f}|{wheelbase}|4800|1800|"
+        f"{rear_share * wheelbase:.0f}|UN|UNK|P||{speed_kmh:.2f}",
+        "----- INSTRUMENTATION -----", row, "----- END -----",
+    ]
+    _write(folder / f"v{test_number}.EV5", header, False)
+    return folder
+
+
 def _write(path: Path, lines: list[str], crlf: bool) -> None:
     path.write_bytes(("\r\n" if crlf else "\n").join(lines).encode("latin-1") + (b"\r\n" if crlf else b"\n"))
 
@@ -224,3 +248,31 @@ def write_mme(folder: Path, spec: MMESpec, test: str = "t1") -> MMEWritten:
            _field("Mass test object 1", repr(spec.mass), p)]
     _write(folder / name(f"{test}.mme"), mme, spec.crlf)
     return MMEWritten(folder, pulse, data)
+
+
+# --- LS-DYNA binout ---------------------------------------------------------------------
+
+
+def write_binout(path: Path, time: np.ndarray, databases: dict, version: str = "fake R12") -> Path:
+    """Write an LSDA ``binout`` laid out as LS-DYNA lays it out, with lasso-python's LSDA writer.
+
+    ``databases`` maps a directory (``rwforc/forces``, ``matsum``, ``nodout``, ``glstat``) to
+    ``(ids, {history name: array of shape (n_states,) or (n_states, n_ids)})``; ``time`` is in the
+    model's time unit. Values are written in single precision, as LS-DYNA writes them.
+    """
+    from lasso.dyna.lsda_py3 import Lsda
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lsda = Lsda(str(path), "w")
+    for directory, (ids, histories) in databases.items():
+        lsda.cd(f"/{directory}/metadata")
+        if ids is not None:
+            lsda.write("ids", Lsda.I4, [int(i) for i in ids])
+        lsda.write("version", Lsda.I1, list(version.encode()))
+        for k, t in enumerate(time):
+            lsda.cd(f"/{directory}/d{k + 1:06d}")
+            lsda.write("time", Lsda.R4, [float(t)])
+            for name, values in histories.items():
+                lsda.write(name, Lsda.R4, [float(v) for v in np.atleast_1d(values[k])])
+    lsda.close()
+    return path

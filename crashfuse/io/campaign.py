@@ -2,8 +2,8 @@
 
 A campaign folder holds ``conditions.csv`` (one row per run, units in the column names;
 :mod:`crashfuse.io.conditions`) and ``pulses/<run_id>.csv`` (:mod:`crashfuse.io.pulse_csv`); a
-row may instead point at an NHTSA EV5 or ISO-MME test folder with ``pulse_path``. The full format
-is in ``docs/campaign-format.md``. Everything is converted to SI once, when read; the writer is
+row may instead point at an NHTSA EV5 or ISO-MME test folder or an LS-DYNA binout with
+``pulse_path``. The full format is in ``docs/campaign-format.md``. Everything is converted to SI once, when read; the writer is
 :mod:`crashfuse.io.campaign_write`.
 """
 
@@ -20,8 +20,9 @@ import pandas as pd
 
 from crashfuse.errors import InputError
 from crashfuse.io.checks import prepare_pulse
-from crashfuse.io.conditions import (CANONICAL, CONDITIONS, DEFAULT_CFC, OPTIONAL, TEXT_REQUIRED, check_table,
-                                     parse_conditions)
+from crashfuse.io.conditions import (CANONICAL, CONDITIONS, DEFAULT_CFC, LSDYNA, OPTIONAL, TEXT_REQUIRED,
+                                     check_table, parse_conditions)
+from crashfuse.io.lsdyna import is_binout, read_binout
 from crashfuse.io.pulse_csv import checked_pulse, plain_pulse_csv, plain_pulse_files
 from crashfuse.io.tables import is_blank
 from crashfuse.signals.pulse import Pulse
@@ -38,7 +39,8 @@ class Campaign:
     conditions : pandas.DataFrame, shape (n_runs, n_columns)
         One row per run with the canonical columns ``run_id, source, v0_mps, front_weight_kg,
         rear_weight_kg, powertrain, drive``, optionally ``cae_run_id`` (a test's companion CAE run)
-        and ``pulse_path`` (an EV5 or ISO-MME folder relative to ``root``), plus any extra column.
+        and ``pulse_path`` (an EV5 or ISO-MME folder or an LS-DYNA binout relative to ``root``, a
+        binout with ``lsdyna_source`` and ``lsdyna_units``), plus any extra column.
     pulses : dict of str to Pulse
         The pulse of every run, keyed by run_id, in SI (from first contact on as `read_campaign`
         leaves filtered pulses).
@@ -222,17 +224,10 @@ def _load_run(root: Path, conditions: Path, row: dict, row_cfc, cfc, plain: dict
     return prepare_pulse(pulse, cfc)
 
 
-def _foreign_run(folder: Path, conditions: Path, fields: dict, meta: dict) -> Pulse:
-    """A pulse_path row: the raw test read from its folder, the row's conditions winning."""
-    if not folder.is_dir():
-        raise InputError(f"expected pulse_path to name an NHTSA EV5 or ISO-MME test folder relative to the "
-                         f"campaign, but {os.fspath(folder)!r} is not a folder (run {fields['run_id']!r})",
-                         conditions, "pulse_path")
-    raw = read_test_folder(folder, fields["front_weight"], fields["rear_weight"])
-    if raw is None:
-        raise InputError(f"expected a folder holding *.EV5 (NHTSA) or *.mme (ISO-MME), found neither in "
-                         f"{os.fspath(folder)!r} (run {fields['run_id']!r})", conditions, "pulse_path")
-    warnings = [f"{name}: {conditions.name} gives {fields[name]:.6g}, {os.fspath(folder)} gives "
+def _foreign_run(where: Path, conditions: Path, fields: dict, meta: dict) -> Pulse:
+    """A pulse_path row: the raw record read from its file or folder, the row's conditions winning."""
+    raw = _foreign_record(where, conditions, fields, meta)
+    warnings = [f"{name}: {conditions.name} gives {fields[name]:.6g}, {os.fspath(where)} gives "
                 f"{getattr(raw, name):.6g} (SI); using {conditions.name}"
                 for name in ("v0", "front_weight", "rear_weight")
                 if abs(getattr(raw, name) - fields[name]) > 0.01 * abs(fields[name])]
@@ -240,6 +235,32 @@ def _foreign_run(folder: Path, conditions: Path, fields: dict, meta: dict) -> Pu
     if warnings:
         merged["warnings"] = [*raw.meta.get("warnings", []), *warnings]
     return raw.replace(meta=merged, **fields)
+
+
+def _foreign_record(where: Path, conditions: Path, fields: dict, meta: dict) -> Pulse:
+    """The raw pulse a pulse_path names: an LS-DYNA binout, an NHTSA EV5 or an ISO-MME test folder."""
+    run = f"(run {fields['run_id']!r})"
+    expected = ("expected pulse_path to name an NHTSA EV5 or ISO-MME test folder or an LS-DYNA binout "
+                "(file or folder) relative to the campaign")
+    if is_binout(where):
+        missing = [c for c in LSDYNA if meta.get(c) is None]
+        if missing:
+            raise InputError(f"expected {missing[0]} on a row whose pulse_path names an LS-DYNA binout {run}",
+                             conditions, missing[0])
+        return read_binout(where, meta["lsdyna_source"], meta["lsdyna_units"], fields["front_weight"],
+                           fields["rear_weight"], v0=fields["v0"], run_id=fields["run_id"])
+    if not where.is_dir():
+        raise InputError(f"{expected}, but {os.fspath(where)!r} is not a folder nor a binout file {run}", conditions,
+                         "pulse_path")
+    lsdyna = [c for c in LSDYNA if meta.get(c) is not None]
+    if lsdyna:
+        raise InputError(f"expected {lsdyna[0]} only on rows whose pulse_path names an LS-DYNA binout, but "
+                         f"{os.fspath(where)!r} holds none {run}", conditions, lsdyna[0])
+    raw = read_test_folder(where, fields["front_weight"], fields["rear_weight"])
+    if raw is None:
+        raise InputError(f"{expected}; found no *.EV5 (NHTSA), *.mme (ISO-MME) or binout* in {os.fspath(where)!r} "
+                         f"{run}", conditions, "pulse_path")
+    return raw
 
 
 def read_test_folder(folder: Path, front_weight: float | None = None, rear_weight: float | None = None) -> Pulse | None:

@@ -29,7 +29,8 @@ QUANTITIES = {
 RANGES = {"v0": (0.0, MAX_SPEED), "front_weight": (0.0, 1e5), "rear_weight": (0.0, 1e5)}
 TEXT_REQUIRED = ("run_id", "source", "powertrain", "drive")
 CANONICAL = ("run_id", "source", "v0_mps", "front_weight_kg", "rear_weight_kg", "powertrain", "drive")
-OPTIONAL = ("cae_run_id", "pulse_path")
+OPTIONAL = ("cae_run_id", "pulse_path", "lsdyna_source", "lsdyna_units")
+LSDYNA = ("lsdyna_source", "lsdyna_units")  # what a binout pulse_path row reads, and the model's units
 CFC_CLASSES = (60, 180, 600, 1000)
 DEFAULT_CFC = 60
 RAW = "raw"
@@ -104,6 +105,17 @@ def check_table(cols: dict[str, list], path: Path | None) -> None:
         if s not in SOURCES:
             raise InputError(f"expected one of {SOURCES}, got {s!r} ({row_label(i, ids)})", path, "source")
     _check_companions(cols, path)
+    _check_lsdyna(cols, path)
+
+
+def _check_lsdyna(cols: dict, path: Path) -> None:
+    """The LS-DYNA columns belong to pulse_path rows (which of those are binouts, the reader sees)."""
+    paths = cols.get("pulse_path", [None] * len(cols["run_id"]))
+    for col in LSDYNA:
+        for i, (value, where) in enumerate(zip(cols.get(col, ()), paths)):
+            if value is not None and where is None:
+                raise InputError(f"expected {col} only on rows whose pulse_path names an LS-DYNA binout, got "
+                                 f"{value!r} on a row without pulse_path ({row_label(i, cols['run_id'])})", path, col)
 
 
 def _check_run_ids(ids: list[str], path: Path) -> None:
