@@ -37,7 +37,6 @@ MASSES = {"kg": 1.0, "g": 1e-3, "t": 1e3}  # kg per model mass unit
 MIN_RATE = 1.0 / STEP  # Hz: a crash pulse needs 10 kHz (ISO/TS 18571's sampling; CFC 60 data)
 RATE_SLACK = 1.05  # LS-DYNA writes at the first solver step past each output time: intervals jitter
 CONTACT_FRACTION = 1e-3  # of the peak deceleration: below it, the run has not yet touched the wall
-QUANTITIES = ("acceleration", "velocity")
 INSTALL = "pip install --no-deps -r lsdyna-requirements.txt"
 _SOURCE = re.compile(r"(rwforc)(?::(\d+))?|(matsum):(\d+)|(nodout):(\d+)(?::(acceleration|velocity))?")
 
