@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -30,6 +31,10 @@ PROFILE = ROOT / "workflow" / "profiles" / "slurm" / "config.yaml"
 PARTITION = "crashfuse"  # the test cluster's one partition, in place of the site's
 SBIN = "/usr/sbin:/sbin"  # the daemons and mungekey live here, which may not be on a user's PATH
 DAEMONS = ("munged", "slurmctld", "slurmd")
+
+
+class SlurmJobsSeen(UserWarning):
+    """The SLURM jobs the test saw, reported in the test summary."""
 
 
 # --- the cluster ------------------------------------------------------------------------------------
@@ -222,8 +227,9 @@ def test_slurm_profile_runs_the_folds_as_slurm_jobs(cluster, tmp_path):
     assert done.returncode == 0, output
 
     submitted, states = _submitted(output), _job_states(cluster)
-    for jobid, what in submitted.items():
-        print(f"SLURM job {jobid}: {what} {states.get(jobid)}")
+    # A warning, so that the ids reach the summary of `make test` (pytest -q under xdist shows no prints).
+    warnings.warn(SlurmJobsSeen("; ".join(f"SLURM job {j}: {what} {'/'.join(states.get(j, ('?',)))}"
+                                          for j, what in submitted.items())))
     folds = [j for j, what in submitted.items() if what.startswith("group_fold")]
     assert len(folds) == len(config["tests"]) * len(config["ks"]) * len(config["inputs"])
     assert "rule_prepare" in submitted.values()
