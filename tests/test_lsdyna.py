@@ -4,6 +4,7 @@ campaign of binout CAE rows and EV5 test rows through `evaluate`."""
 from __future__ import annotations
 
 import importlib.metadata
+import json
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from crashfuse.errors import InputError
 from crashfuse.io.campaign import read_campaign
 from crashfuse.io.campaign_write import write_campaign
 from crashfuse.io.lsdyna import read_binout
-from crashfuse.units import G0, KMH, LB, MPH
+from crashfuse.units import KMH
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
 from fakes import write_binout, write_ev5_pulse
@@ -59,8 +60,9 @@ def test_real_binouts_name_what_is_missing(version):
     assert err.value.field == "lsdyna_units"
 
 
-@pytest.mark.parametrize("units, source", [("in-s-lbf", "rwforc"), ("mm-ms", "rwforc"), ("mm-ms-kg", "nodout"),
-                                           ("mm-ms-kg", "matsum"), ("mm-ms-kg", "glstat"), ("mm-ms-kg", "nodout:1:jerk")])
+@pytest.mark.parametrize("units, source", [
+    ("in-s-lbf", "rwforc"), ("mm-ms", "rwforc"), ("mm-ms-kg", "nodout"), ("mm-ms-kg", "matsum"), ("mm-ms-kg", "glstat"),
+    ("mm-ms-kg", "nodout:1:jerk")])
 def test_bad_units_and_sources_are_refused_before_reading(tmp_path, units, source):
     with pytest.raises(InputError, match="expected") as err:
         read_binout(tmp_path / "binout", source, units, MASS / 2, MASS / 2)
@@ -141,7 +143,8 @@ def test_a_node_not_in_nodout_and_several_walls_are_named(tmp_path):
         read_binout(binout, "nodout:99", "mm-ms-kg", MASS / 2, MASS / 2)
     assert err.value.field == "lsdyna_source"
     t = np.arange(0, 50, 0.1)
-    walls = write_binout(tmp_path / "walls" / "binout", t, {"rwforc/forces": ([1, 2], {"normal_force": np.ones((t.size, 2))})})
+    forces = {"rwforc/forces": ([1, 2], {"normal_force": np.ones((t.size, 2))})}
+    walls = write_binout(tmp_path / "walls" / "binout", t, forces)
     with pytest.raises(InputError, match=r"2 rigid walls \(ids 1, 2\); name one as rwforc:<wall id>"):
         read_binout(walls, "rwforc", "mm-ms-kg", MASS / 2, MASS / 2)
 
@@ -150,7 +153,6 @@ def test_pulse_metrics_reads_a_binout(tmp_path, capsys):
     binout = _binout_of(tmp_path / "binout", lambda t: _crash(t, 15.6), 15.6, "rwforc", "mm-ms-kg")
     assert main(["pulse-metrics", str(binout), "--lsdyna-source", "rwforc", "--lsdyna-units", "mm-ms-kg",
                  "--mass-kg", str(MASS), "--json"]) == 0
-    import json
     (row,) = json.loads(capsys.readouterr().out)
     assert row["restitution"] == pytest.approx(0.3, abs=0.02)
     assert main(["pulse-metrics", str(binout), "--lsdyna-source", "rwforc", "--mass-kg", str(MASS)]) == 2
@@ -174,7 +176,8 @@ def _binout_campaign(folder: Path) -> tuple[Path, Path]:
     """The same small world campaign twice: as raw CSVs, and as binout CAE rows (three sources) + EV5 test rows."""
     full = build(resolve("paper"), seed=0, n_cae=16)[0]
     keep = ["T02", "T05", "T08"]
-    campaign = full.subset(keep + [full.companion(t).run_id for t in keep] + [r for r in full.cae if r.startswith("C0")])
+    companions = [full.companion(t).run_id for t in keep]
+    campaign = full.subset(keep + companions + [r for r in full.cae if r.startswith("C0")])
     plain = write_campaign(campaign, folder / "csv")
     rows = pd.read_csv(plain / "conditions.csv", keep_default_na=False)
     # Both read as raw records, so that both are filtered to CFC 60 once more on reading.

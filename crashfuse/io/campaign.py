@@ -3,8 +3,8 @@
 A campaign folder holds ``conditions.csv`` (one row per run, units in the column names;
 :mod:`crashfuse.io.conditions`) and ``pulses/<run_id>.csv`` (:mod:`crashfuse.io.pulse_csv`); a
 row may instead point at an NHTSA EV5 or ISO-MME test folder or an LS-DYNA binout with
-``pulse_path``. The full format is in ``docs/campaign-format.md``. Everything is converted to SI once, when read; the writer is
-:mod:`crashfuse.io.campaign_write`.
+``pulse_path``. The full format is in ``docs/campaign-format.md``. Everything is converted to SI
+once, when read; the writer is :mod:`crashfuse.io.campaign_write`.
 """
 
 from __future__ import annotations
