@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -61,6 +62,38 @@ def results_dir(configfile: Path, workdir: Path) -> Path:
     return workdir / config.get("results", "results")
 
 
+def release_stale_lock(configfile: Path, workdir: Path) -> bool:
+    """Remove the lock a killed run left in ``workdir`` (Snakemake keeps it after some kill signals), so
+    that starting again resumes, as it is meant to; never while a Snakemake process works there.
+
+    Returns
+    -------
+    bool
+        True if a stale lock was removed.
+    """
+    if not any((workdir / ".snakemake" / "locks").glob("*")) or snakemake_running_in(workdir):
+        return False
+    subprocess.run(snakemake_command(configfile, workdir, 1, "--unlock"), check=True, capture_output=True)
+    return True
+
+
+def snakemake_running_in(workdir: Path) -> bool:
+    """Whether a process whose command line names Snakemake works in ``workdir`` (its working directory or
+    an argument). Without /proc (not Linux) nothing can be told apart: True, the safe answer."""
+    procs = Path("/proc")
+    if not (procs / "self" / "cmdline").is_file():
+        return True
+    for proc in procs.glob("[0-9]*"):
+        try:
+            argv = (proc / "cmdline").read_bytes().split(b"\0")
+            cwd = os.readlink(proc / "cwd")
+        except OSError:  # gone meanwhile, or not ours to read
+            continue
+        if any(b"snakemake" in a for a in argv) and (os.fsencode(workdir) in argv or cwd == os.fspath(workdir)):
+            return True
+    return False
+
+
 def summary(results: Path) -> str:
     """The Table 2 of each input mode and the paths of the figures, report and MLflow store.
 
@@ -106,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as err:
         print(f"crashfuse reproduce: error: {err}", file=sys.stderr)
         return 2
+    if release_stale_lock(configfile, workdir):
+        print("crashfuse reproduce: removed the lock a killed run left (no Snakemake process works here)")
     t0 = time.perf_counter()
     for extra in ((), ("--report", str(results / "report.html"))):
         done = subprocess.run(snakemake_command(configfile, workdir, args.cores, *extra), check=False)

@@ -110,6 +110,22 @@ def test_reproduce_reports_an_unreadable_config(tmp_path):
     assert reproduce.main(["--configfile", str(bad), "--workdir", str(tmp_path)]) == 2
 
 
+def test_reproduce_removes_a_lock_only_no_snakemake_holds(tmp_path):
+    locks = tmp_path / ".snakemake" / "locks"
+    locks.mkdir(parents=True)
+    (locks / "0.input.lock").write_text(str(tmp_path))
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "snakemake", str(tmp_path)])
+    try:
+        assert reproduce.snakemake_running_in(tmp_path)
+        assert not reproduce.release_stale_lock(TEST_CONFIG, tmp_path) and any(locks.iterdir())
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not reproduce.snakemake_running_in(tmp_path)
+    assert reproduce.release_stale_lock(TEST_CONFIG, tmp_path) and not any(locks.glob("*"))
+    assert not reproduce.release_stale_lock(TEST_CONFIG, tmp_path)  # nothing left to remove
+
+
 # --- DAG ------------------------------------------------------------------------------------------
 
 
@@ -226,6 +242,17 @@ def _finished_models(log: str) -> list[str]:
     return [outputs[j] for j in re.findall(r"Finished jobid: (\d+) \(Rule: train\)", log)]
 
 
+def _wait_group_gone(pgid: int, timeout: float = 120) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return
+        assert time.monotonic() < deadline, "the killed run's processes did not exit"
+        time.sleep(0.1)
+
+
 def _killed_among_the_folds(command, env, workdir: Path, n_models: int) -> dict:
     """Start ``command``, kill it (SIGTERM to its process group) once its first train job has finished;
     return the fold models Snakemake reported finished, with their modification times."""
@@ -238,6 +265,7 @@ def _killed_among_the_folds(command, env, workdir: Path, n_models: int) -> dict:
             time.sleep(0.1)
         os.killpg(run.pid, signal.SIGTERM)
         assert run.wait(timeout=120) != 0
+        _wait_group_gone(run.pid)  # Snakemake outlives the wrapper while it shuts down, lock still held
     left = {workdir / p: (workdir / p).stat().st_mtime_ns for p in _finished_models(log.read_text())}
     assert 0 < len(left) < n_models  # killed in the middle of the folds
     return left
