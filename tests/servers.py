@@ -7,9 +7,12 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 import urllib.request
 from pathlib import Path
+
+import pytest
 
 
 def free_port() -> int:
@@ -29,12 +32,26 @@ def serving(command: list[str], log: Path, env: dict, ready_url: str, timeout: f
             _wait_up(ready_url, server, log, timeout)
             yield server
         finally:
-            os.killpg(server.pid, signal.SIGTERM)
-            try:
-                server.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(server.pid, signal.SIGKILL)
-                server.wait(timeout=10)
+            stop_group(server)
+
+
+def stop_group(proc: subprocess.Popen) -> None:
+    """SIGTERM to the process group ``proc`` leads, SIGKILL after 20 s."""
+    os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+
+
+def mlflow_server(port: int, backend: str, artifacts: Path, workers: int, *extra: str) -> list[str]:
+    """The `mlflow server` command beside this Python on 127.0.0.1 (skips the test if it is missing)."""
+    mlflow_bin = Path(sys.executable).with_name("mlflow")
+    if not mlflow_bin.exists():
+        pytest.skip("the mlflow command is not installed beside this Python")
+    return [str(mlflow_bin), "server", "--host", "127.0.0.1", "--port", str(port), "--workers", str(workers),
+            "--backend-store-uri", backend, *extra, "--artifacts-destination", str(artifacts)]
 
 
 def _wait_up(url: str, server: subprocess.Popen, log: Path, timeout: float) -> None:

@@ -12,7 +12,6 @@ import contextlib
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -24,7 +23,7 @@ import yaml
 
 pytest.importorskip("snakemake_executor_plugin_slurm", reason="no SLURM executor plugin: pip install -e '.[slurm]'")
 
-from servers import free_port  # noqa: E402
+from servers import free_port, stop_group  # noqa: E402
 from test_workflow import ROOT, SNAKEFILE, TEST_CONFIG, snakemake  # noqa: E402
 
 PROFILE = ROOT / "workflow" / "profiles" / "slurm" / "config.yaml"
@@ -112,12 +111,7 @@ def _daemon(command: list, log: Path, env: dict):
     try:
         yield proc
     finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=10)
+        stop_group(proc)
 
 
 def _log_tails(base: Path) -> str:

@@ -30,7 +30,7 @@ from mlflow.tracking import MlflowClient  # noqa: E402
 
 from snakemake.utils import validate  # noqa: E402
 
-from servers import free_port, serving  # noqa: E402
+from servers import free_port, mlflow_server, serving  # noqa: E402
 from test_workflow import SCHEMA, TEST_CONFIG, job_counts, snakemake  # noqa: E402
 
 SUPERUSER = "postgres"  # the throwaway cluster's superuser, who plays the team's DBA
@@ -169,16 +169,11 @@ def _create_database(port: int) -> None:
 @pytest.fixture()
 def team_server(postgres, tmp_path):
     """`mlflow server` on the PostgreSQL store, serving artifacts from tmp_path/artifacts; yields its URL."""
-    mlflow_bin = Path(sys.executable).with_name("mlflow")
-    if not mlflow_bin.exists():
-        pytest.skip("the mlflow command is not installed beside this Python")
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     # Two workers, as a team server has: PostgreSQL takes their concurrent writes (a SQLite file would lock).
     # --serve-artifacts: clients upload and download through the server, no shared disk needed.
-    command = [str(mlflow_bin), "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "2",
-               "--backend-store-uri", postgres, "--serve-artifacts",
-               "--artifacts-destination", str(tmp_path / "artifacts")]
+    command = mlflow_server(port, postgres, tmp_path / "artifacts", 2, "--serve-artifacts")
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     env.update(MLFLOW_DISABLE_TELEMETRY="true", MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false")  # as test_tracking.py
     # The first start creates MLflow's tables (its migrations): allow for that.

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,7 @@ from mlflow.tracking import MlflowClient  # noqa: E402
 from crashfuse.reporting import tracking  # noqa: E402
 from crashfuse.errors import InputError  # noqa: E402
 from crashfuse.evaluation.records import FoldRecord, write_fold_json  # noqa: E402
-from servers import free_port, serving  # noqa: E402
+from servers import free_port, mlflow_server, serving  # noqa: E402
 
 SCORES = ["overall", "corridor", "phase", "magnitude", "slope"]
 WINDOWS = ["0-20", "0-40", "0-60"]
@@ -235,14 +234,9 @@ def test_tracking_uri_precedence(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_logging_to_a_real_tracking_server(tmp_path, monkeypatch):
-    mlflow_bin = Path(sys.executable).with_name("mlflow")
-    if not mlflow_bin.exists():
-        pytest.skip("the mlflow command is not installed beside this Python")
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    command = [str(mlflow_bin), "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
-               "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}", "--artifacts-destination",
-               str(tmp_path / "server-artifacts")]
+    command = mlflow_server(port, f"sqlite:///{tmp_path / 'server.db'}", tmp_path / "server-artifacts", 1)
     # No telemetry, and no background job runner (a second process this test does not need).
     env = {**os.environ, "MLFLOW_DISABLE_TELEMETRY": "true", "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
     with serving(command, tmp_path / "server.log", env, url + "/health", timeout=90):
