@@ -156,7 +156,9 @@ def _fit(args) -> int:
 
     config = MethodConfig(k=args.k, inputs=args.inputs, random_state=args.seed, **_method_settings(args))
     campaign = read_campaign(args.campaign)
-    model = fit_model(campaign, config, holdout=args.holdout, surrogate=_read_surrogate(args, campaign))
+    surrogate = _read_surrogate(args, campaign)
+    model = fit_model(campaign, config, holdout=args.holdout, surrogate=surrogate,
+                      pooled=_pooled_from(args, campaign, config, surrogate))
     model.save(args.out, surrogate_file=args.surrogate)  # with --surrogate the model refers to its file
     gps = {b: 0 if est is None else len(est.gps_) for b, est in model.bias_.items()}
     print(f"wrote {args.out}: K={args.k} {args.inputs} inputs, {len(model.training_tests)} training tests, "
@@ -164,6 +166,26 @@ def _fit(args) -> int:
     if model.physics is not None:
         print(_physics_line(model.physics))
     return 0
+
+
+def _pooled_from(args, campaign, config, surrogate):
+    """The pooled GPs of the ``--pooled-from`` model (None without it), which must be this fit's fold
+    with another K: the same campaign, holdout and settings."""
+    import dataclasses
+
+    from crashfuse.method.model import holdout_tests, load_model
+
+    if not args.pooled_from:
+        return None
+    other = load_model(args.pooled_from, surrogate)
+    held = sorted(holdout_tests(campaign, args.holdout))
+    same = (other.campaign_hash == campaign.content_hash(), other.holdout == held,
+            dataclasses.replace(other.config, k=config.k) == config)
+    if not all(same):
+        what = [name for name, ok in zip(("campaign", "holdout", "method settings"), same) if not ok]
+        raise InputError(f"expected a model of this fit with another K; different: {', '.join(what)}",
+                         args.pooled_from, "pooled_from")
+    return other.all_rows_gps()
 
 
 def _read_surrogate(args, campaign):
@@ -662,6 +684,9 @@ def _add_fit(sub) -> None:
                    help="test to keep out of the bias data (repeatable)")
     _add_surrogate_option(s)
     _add_method_options(s)
+    s.add_argument("--pooled-from", metavar="MODEL",
+                   help="model file of this fit with another K (same campaign, holdout and settings): "
+                        "its pooled GP is reused, the same fit, not refitted")
     s.add_argument("--out", required=True, help="model file to write (e.g. model.cfmodel)")
     s.set_defaults(func=_fit)
 

@@ -622,6 +622,34 @@ def test_pooled_with_one_cluster_is_the_plain_model():
     np.testing.assert_array_equal(pooled.sample_functions(X[:30], 5, 2), plain.sample_functions(X[:30], 5, 2))
 
 
+def test_a_larger_k_reuses_the_smaller_ks_gp_as_its_pooled_gp_and_gets_the_same_model():
+    """The pooled GP of K = 2 and 3 is the K = 1 model's GP (same rows, settings and seed): taken over,
+    the models predict bit for bit what they predict fitted from scratch."""
+    X, y = _two_regime_data()
+    groups = np.repeat(np.arange(6), 40)
+    settings = dict(pooled=True, trend="zero", random_state=5, estimate_scatter=False)
+    one = GMMGPBias(n_clusters=1, **settings).fit(X, y, groups)
+    for k in (2, 3):
+        fresh = GMMGPBias(n_clusters=k, **settings).fit(X, y, groups)
+        reused = GMMGPBias(n_clusters=k, **settings).fit(X, y, groups, pooled_gp=one.all_rows_gp())
+        assert reused.pooled_gp_ is one.gps_[0] and fresh.all_rows_gp() is fresh.pooled_gp_
+        np.testing.assert_array_equal(reused.predict(X, return_std=True), fresh.predict(X, return_std=True))
+        np.testing.assert_array_equal(reused.sample_functions(X[:30], 4, 1), fresh.sample_functions(X[:30], 4, 1))
+
+
+@pytest.mark.parametrize("change", ["rows", "seed", "settings"])
+def test_a_pooled_gp_of_another_fit_is_refused(change):
+    X, y = _two_regime_data()
+    groups = np.repeat(np.arange(6), 40)
+    settings = dict(pooled=True, trend="zero", random_state=5, estimate_scatter=False)
+    other_rows = groups != 0
+    donor = GMMGPBias(n_clusters=1, **{**settings, "random_state": 6 if change == "seed" else 5,
+                                        "trend": "constant" if change == "settings" else "zero"})
+    donor.fit(*((X[other_rows], y[other_rows], groups[other_rows]) if change == "rows" else (X, y, groups)))
+    with pytest.raises(ValueError, match="not this model's pooled GP"):
+        GMMGPBias(n_clusters=2, **settings).fit(X, y, groups, pooled_gp=donor.all_rows_gp())
+
+
 # --------------------------------------------------------------------------- onset correction
 def _onset_data(speeds=(4.0, 6.0, 8.0, 10.0, 12.0, 14.0), per=60):
     """Bias = a smooth function of (x, v0) + a ringing locked in time t = x / v0 (gone by t = 1).

@@ -245,10 +245,11 @@ def test_the_cli_steps_of_a_fold_give_the_evaluate_fold(campaign, tmp_path, caps
     folder = write_campaign(campaign, tmp_path / "campaign")
     surrogate, fold = tmp_path / "surrogate.cfmodel", tmp_path / "fold"
     assert main(["prepare", str(folder), "--out", str(surrogate)]) == 0
-    for k in (1, 2):
+    for k in (1, 2):  # K2 reuses K1's GP as its pooled GP, as the workflow's train jobs do
         model, out = tmp_path / f"K{k}.cfmodel", fold / f"K{k}"
+        pooled = ["--pooled-from", str(tmp_path / "K1.cfmodel")] if k == 2 else []
         assert main(["fit", str(folder), "--k", str(k), "--inputs", "state", "--holdout", "T05", "--surrogate",
-                     str(surrogate), "--n-grid", "40", "--out", str(model)]) == 0
+                     str(surrogate), "--n-grid", "40", *pooled, "--out", str(model)]) == 0
         assert main(["rollout", str(model), str(folder), "--test", "T05", "--samples", "40", "--inner",
                      "--out", str(out)]) == 0
         assert main(["score", str(folder), str(out), "--test", "T05", "--table-dir", str(out)]) == 0
@@ -259,17 +260,23 @@ def test_the_cli_steps_of_a_fold_give_the_evaluate_fold(campaign, tmp_path, caps
         load_model(tmp_path / "K1.cfmodel")
     assert load_model(tmp_path / "K1.cfmodel", load_surrogate(moved)).surrogate is not None
     moved.rename(surrogate)
-    res = ev.evaluate(read_campaign(folder), ks=[1], inputs=["state"], holdout="T05", n_samples=40, n_jobs=1,
+    res = ev.evaluate(read_campaign(folder), ks=[2, 1], inputs=["state"], holdout="T05", n_samples=40, n_jobs=1,
                       surrogate=load_surrogate(surrogate), progress=None, n_grid=40)
-    steps = pd.read_csv(fold / "K1" / "iso_table.csv", dtype={"window_ms": str})
-    np.testing.assert_allclose(steps[steps.model == "K1"].overall, res.iso_table[res.iso_table.model == "K1"].overall,
-                               atol=1e-4)
+    assert list(res.coverage.model) == ["K2", "K1"]  # the order asked for, though K1 is fitted first
+    for k in ("K1", "K2"):
+        steps = pd.read_csv(fold / k / "iso_table.csv", dtype={"window_ms": str})
+        np.testing.assert_allclose(steps[steps.model == k].overall, res.iso_table[res.iso_table.model == k].overall,
+                                   atol=1e-4)
     assert read_fold_json(fold / "K1" / "T05.fold.json").settings == res.records["state", "K1", "T05"].settings
     assert main(["auto", str(fold / "K1" / "T05.rollout.json"), str(fold / "K2" / "T05.rollout.json"),
                  "--inputs", "state", "--out", str(fold / "auto")]) == 0
     assert main(["score", str(folder), str(fold / "auto"), "--test", "T05", "--table-dir", str(fold / "auto")]) == 0
     assert set(pd.read_csv(fold / "auto" / "iso_table.csv").model) == {"CAE", "auto"}
     capsys.readouterr()
+    assert main(["fit", str(folder), "--k", "2", "--inputs", "state", "--holdout", "T02", "--surrogate",
+                 str(surrogate), "--n-grid", "40", "--pooled-from", str(tmp_path / "K1.cfmodel"),
+                 "--out", str(tmp_path / "other.cfmodel")]) == 2
+    assert "K1.cfmodel: field 'pooled_from'" in capsys.readouterr().err and not (tmp_path / "other.cfmodel").exists()
     assert main(["score", str(folder), str(fold / "K1"), "--test", "T99", "--table-dir", str(fold)]) == 2
     assert "T99" in capsys.readouterr().err
     assert main(["score", str(folder), str(fold / "K1"), "--test", "T05", "--windows", "40-20",
@@ -301,7 +308,8 @@ def test_workers_read_the_campaign_once_from_a_pickle_they_remove(campaign, surr
     folds = [(MethodConfig(k=1, inputs="paper", **FAST), "T02", None),
              (MethodConfig(k=1, inputs="state", **FAST), "T08", None)]  # no physics: the plain model
     settings = (5, "test")
-    shared = list(ev._run_folds(campaign, surrogate, folds, 2, settings))
+    chains = [([config], test, physics) for config, test, physics in folds]
+    shared = [chain[0] for chain in ev._run_chains(campaign, surrogate, chains, 2, settings)]
     assert not list(tmp_path.iterdir())
     direct = Parallel(n_jobs=2)(delayed(ev._fold)(campaign, surrogate, *fold, *settings) for fold in folds)
     for got, want in zip(shared, direct):

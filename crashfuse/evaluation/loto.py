@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import os
 import pickle
 import tempfile
@@ -129,15 +130,20 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     say = progress or (lambda line: None)
     physics = _physics(campaign, surrogate, tests, next(iter(configs.values())).effects, n_jobs, say)
     auto_modes = _auto_modes(auto, inputs)
-    folds = [(configs[mode, k], t, physics[t]) for mode in inputs for k in ks for t in tests]
-    say(f"evaluate: {len(folds)} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
-    results = []
-    for i, res in enumerate(_run_folds(campaign, surrogate, folds, n_jobs, (n_samples, band, auto_modes)), 1):
-        results.append(res)
-        cov = res["coverage"]
-        say(f"[{i}/{len(folds)}] {cov['inputs']} {cov['model']} {cov['test_id']}: "
-            f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
-            f"fit {cov['fit_s']:.1f} s")
+    ascending = sorted(ks)
+    keys = list(itertools.product(inputs, tests))
+    chains = [([configs[mode, k] for k in ascending], t, physics[t]) for mode, t in keys]
+    n_folds = len(ks) * len(chains)
+    say(f"evaluate: {n_folds} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
+    done, n = {}, 0
+    for key, chain in zip(keys, _run_chains(campaign, surrogate, chains, n_jobs, (n_samples, band, auto_modes))):
+        done[key] = chain
+        for res in chain:
+            n, cov = n + 1, res["coverage"]
+            say(f"[{n}/{n_folds}] {cov['inputs']} {cov['model']} {cov['test_id']}: "
+                f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
+                f"fit {cov['fit_s']:.1f} s")
+    results = [done[mode, t][ascending.index(k)] for mode in inputs for k in ks for t in tests]
     if auto_modes:
         chosen = [_auto_fold(campaign, surrogate, [r for r in results if r["coverage"]["test_id"] == t
                                                    and r["coverage"]["inputs"] in auto_modes], auto_modes)
@@ -224,27 +230,27 @@ def _physics(campaign, surrogate, tests, effects, n_jobs, say) -> dict:
     return dict(zip(tests, fits))
 
 
-def _run_folds(campaign, surrogate, folds, n_jobs, settings):
-    """``_fold`` of every ``(config, test_id)`` in ``folds``, in order, on ``n_jobs`` processes.
+def _run_chains(campaign, surrogate, chains, n_jobs, settings):
+    """``_chain`` of every ``(configs, test_id, physics)`` in ``chains``, in order, on ``n_jobs`` processes.
 
     The campaign and the surrogate (120 MB pickled for the 1031-run ``paper`` campaign) reach each
     worker process once, through a temporary pickle: passed with every fold, pickling and unpickling
     them cost about 0.13 s CPU a fold.
     """
     if effective_n_jobs(n_jobs) == 1:
-        yield from (_fold(campaign, surrogate, *fold, *settings) for fold in folds)
+        yield from (_chain(campaign, surrogate, *chain, *settings) for chain in chains)
         return
     with tempfile.TemporaryDirectory(prefix="crashfuse-evaluate-") as tmp:
         shared = os.path.join(tmp, "campaign-surrogate.pkl")
         with open(shared, "wb") as fh:
             pickle.dump((campaign, surrogate), fh, protocol=pickle.HIGHEST_PROTOCOL)
         yield from Parallel(n_jobs=n_jobs, return_as="generator")(
-            delayed(_shared_fold)(shared, *fold, *settings) for fold in folds)
+            delayed(_shared_chain)(shared, *chain, *settings) for chain in chains)
 
 
-def _shared_fold(shared, *fold_and_settings) -> dict:
-    """``_fold`` with the campaign and surrogate from the pickle ``shared`` (loaded once per process)."""
-    return _fold(*_load_shared(shared), *fold_and_settings)
+def _shared_chain(shared, *chain_and_settings) -> list:
+    """``_chain`` with the campaign and surrogate from the pickle ``shared`` (loaded once per process)."""
+    return _chain(*_load_shared(shared), *chain_and_settings)
 
 
 @functools.lru_cache(maxsize=1)
@@ -253,17 +259,30 @@ def _load_shared(path):
         return pickle.load(fh)
 
 
-def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, auto_modes=()) -> dict:
-    """Fit ``config`` without ``test_id`` (with the hybrid's ``physics`` fitted without it, if any),
-    roll out its condition and score it (:mod:`crashfuse.evaluation.fold`, the workflow's three steps in one
-    process); the fit's inner error too where its input mode is among ``auto_modes``."""
-    model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics)
+def _chain(campaign, surrogate, configs, test_id, physics, *settings) -> list:
+    """The folds of one input mode and held-out test, K ascending: a K > 1 model takes the pooled GP of
+    the K before it (:meth:`FittedModel.all_rows_gps`, the same fit), so it is fitted once per fold."""
+    out, pooled = [], None
+    for config in configs:
+        res = _fold(campaign, surrogate, config, test_id, physics, *settings, pooled=pooled)
+        pooled = res.pop("model").all_rows_gps()
+        out.append(res)
+    return out
+
+
+def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, auto_modes=(),
+          pooled=None) -> dict:
+    """Fit ``config`` without ``test_id`` (with the hybrid's ``physics`` fitted without it, if any, and
+    the ``pooled`` GPs of another K's fit), roll out its condition and score it
+    (:mod:`crashfuse.evaluation.fold`, the workflow's three steps in one process); the fit's inner
+    error too where its input mode is among ``auto_modes``."""
+    model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics, pooled=pooled)
     pred, facts = rollout_fold(model, campaign, test_id, n_samples, band, config.inputs in auto_modes)
     frame = pred.frame()
     scored = score_fold(campaign, test_id, frame, facts, cae=cae_pulse(campaign, surrogate, test_id))
     frame["test_decel_g"] = np.interp(pred.time, *_test_decel(campaign, test_id)) / G0
     return {"iso": scored["iso"], "coverage": scored["coverage"], "frame": frame, "record": scored["record"],
-            "facts": facts}
+            "facts": facts, "model": model}
 
 
 def _test_decel(campaign, test_id):

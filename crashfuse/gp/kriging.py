@@ -15,6 +15,8 @@ so nothing here depends on units. The equations as implemented, and the paper's 
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.preprocessing import StandardScaler
@@ -31,10 +33,21 @@ from crashfuse.gp.sampling import joint_draws
 from crashfuse.gp.subsets import condition_subset, random_subset, stratified_subset
 from crashfuse.gp.threads import blas_threads, limit_blas
 
-__all__ = ["KrigingGP", "SEED_MAX"]
+__all__ = ["KrigingGP", "SEED_MAX", "data_digest"]
 
 SEED_MAX = 2**31 - 1  # exclusive upper bound of the integer seeds handed to sub-estimators
 _CHUNK = 2048  # prediction points per block: bounds the (n_train, chunk) work arrays
+
+
+def data_digest(X, y, groups=None) -> str:
+    """A fingerprint of training rows ``(X, y, groups)``: two fits with equal settings and seed on rows
+    with equal digests are the same fit."""
+    h = hashlib.blake2b(digest_size=16)
+    for a in (X, y):
+        h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+    if groups is not None:
+        h.update("\0".join(map(str, groups)).encode())
+    return h.hexdigest()
 
 
 class KrigingGP(RegressorMixin, BaseEstimator):
@@ -101,6 +114,8 @@ class KrigingGP(RegressorMixin, BaseEstimator):
     ----------
     theta_ : ndarray, shape (d,)
         Correlation parameters on the standardised inputs.
+    data_digest_ : str
+        :func:`data_digest` of the training rows.
     nugget_ : float
         Noise-to-signal variance ratio.
     sigma2_ : float
@@ -199,6 +214,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         X, y = self._validate_training_data(X, y)
         if groups is not None and len(groups) != len(y):
             raise ValueError(f"groups has {len(groups)} entries for {len(y)} rows")
+        self.data_digest_ = data_digest(X, y, groups)
         Z = self.scaler_.transform(X)
         centre = self.normalize_y and self.trend != "zero"  # a zero-mean prior must stay zero in y units
         self.y_mean_, self.y_std_ = (y.mean() if centre else 0.0), (y.std() if self.normalize_y else 1.0)

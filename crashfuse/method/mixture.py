@@ -14,7 +14,7 @@ from sklearn.utils import check_random_state
 from sklearn.utils.validation import check_array, check_is_fitted, validate_data
 
 from crashfuse.errors import InputError
-from crashfuse.gp.kriging import SEED_MAX, KrigingGP
+from crashfuse.gp.kriging import SEED_MAX, KrigingGP, data_digest
 from crashfuse.gp.threads import controller, limit_blas
 
 __all__ = ["GMMGPBias", "TooFewPointsError", "THETA_MAX_CANDIDATES", "MIN_CLUSTER_TESTS"]
@@ -148,7 +148,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         return 3 * (p + d + 2)
 
     @limit_blas
-    def fit(self, X, y, groups=None):
+    def fit(self, X, y, groups=None, pooled_gp=None):
         """Fit scaler and mixture on ``X``, then one KrigingGP per (merged) cluster.
 
         Parameters
@@ -158,10 +158,19 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
             Bias, m/s^2.
         groups : array_like, shape (n,), optional
             Test of each row, passed to the cluster GPs (:meth:`KrigingGP.fit`).
+        pooled_gp : KrigingGP, optional
+            The pooled GP already fitted, e.g. :meth:`all_rows_gp` of another K's model of the same
+            rows and seed: the same fit, so it is taken as it is (the result is identical, the cost
+            of the pooled GP saved). Used only where this model pools.
 
         Returns
         -------
         self
+
+        Raises
+        ------
+        ValueError
+            ``pooled_gp`` was fitted on other rows, with other settings or another seed.
         """
         if self.assignment not in ("select", "blend"):
             raise ValueError(f"assignment must be 'select' or 'blend', got {self.assignment!r}")
@@ -186,7 +195,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         groups = None if groups is None else np.asarray(groups)
         self.pooled_gp_ = None
         if self.pooled and n_gps > 1:
-            self.pooled_gp_ = self._gp(rng.randint(SEED_MAX)).fit(X, y, groups)
+            self.pooled_gp_ = self._pooled_fit(self._gp(rng.randint(SEED_MAX)), X, y, groups, pooled_gp)
             y = y - self.pooled_gp_.predict(X)
         residual = {"trend": "zero", "estimate_scatter": False} if self.pooled_gp_ is not None else {}
         self.gps_ = [self._gp(rng.randint(SEED_MAX), **residual).fit(
@@ -197,6 +206,26 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
             self.residual_var_ = np.array([self._residual_prior(gp, groups[self.labels_ == g])
                                            for g, gp in enumerate(self.gps_)])
         return self
+
+    @staticmethod
+    def _pooled_fit(gp, X, y, groups, fitted):
+        """``gp`` fitted on the rows, or ``fitted`` where it is that same fit (ValueError where it is not)."""
+        if fitted is None:
+            return gp.fit(X, y, groups)
+        if fitted.get_params() != gp.get_params() or getattr(fitted, "data_digest_", None) != data_digest(X, y, groups):
+            raise ValueError("pooled_gp is not this model's pooled GP: fitted on other rows, settings or seed")
+        return fitted
+
+    def all_rows_gp(self):
+        """The GP on every training row with this model's settings and its pooled GP's seed, or None.
+
+        The pooled GP, or the only GP of a model with one cluster: the same fit another K's model of
+        the same rows and ``random_state`` makes, which it can take as ``pooled_gp``.
+        """
+        check_is_fitted(self)
+        if self.pooled_gp_ is not None:
+            return self.pooled_gp_
+        return self.gps_[0] if len(self.gps_) == 1 else None
 
     def _residual_prior(self, gp, groups):
         """Prior variance of one cluster GP (y units squared): the part of its residual its tests show it predicts.

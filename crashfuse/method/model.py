@@ -141,6 +141,12 @@ class FittedModel:
         """True if the bias models learn the bias relative to the CAE deceleration."""
         return self.config.target == "relative"
 
+    def all_rows_gps(self) -> dict:
+        """Per branch, the GP on every bias row that another K's fit of the same fold can reuse as its
+        pooled GP (``fit_model(..., pooled=...)``); branches without one are left out."""
+        gps = {b: est.all_rows_gp() for b, est in self.bias_.items() if est is not None}
+        return {b: gp for b, gp in gps.items() if gp is not None}
+
     def condition(self, v0, front_weight, rear_weight, powertrain=None, drive=None) -> Condition:
         """A validated :class:`Condition` (SI).
 
@@ -324,7 +330,8 @@ def _load(kind: str, cls, path):
 
 
 def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
-              surrogate: CAESurrogate | None = None, physics: PhysicsFirst | None = None) -> FittedModel:
+              surrogate: CAESurrogate | None = None, physics: PhysicsFirst | None = None,
+              pooled: dict | None = None) -> FittedModel:
     """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
 
     Parameters
@@ -346,6 +353,9 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         The effect laws of ``config.effects`` already fitted on this fit's training tests
         (:func:`crashfuse.method.hybrid.fit_physics`; shared by the folds of every K and input
         mode that hold out the same test). Otherwise fitted here when ``config.effects`` names any.
+    pooled : dict of str to KrigingGP, optional
+        Per branch, the pooled GP already fitted: :meth:`FittedModel.all_rows_gps` of another K's fit
+        with the same holdout and settings (the same fit, so the result is identical and its cost saved).
 
     Returns
     -------
@@ -357,7 +367,8 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         No CAE runs; an unknown or non-test holdout; no training test left; a branch with fewer
         bias points than the model has parameters; a rate law without CAE runs at several speeds.
     ValueError
-        ``physics`` fitted on other tests or other effects than this fit's.
+        ``physics`` fitted on other tests or other effects than this fit's; a ``pooled`` GP that is not
+        this fit's.
     """
     t0, started = time.perf_counter(), time.time()
     if not isinstance(config, MethodConfig):
@@ -377,7 +388,9 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
                          f"{sorted(train)} with {config.effects}")
     data = training_data(campaign, train, config, surrogate, physics)
     seeds = np.random.RandomState(config.random_state).randint(SEED_MAX, size=len(BRANCHES))
-    bias = {b: _fit_branch(data, b, config, int(seed), campaign.root) for b, seed in zip(BRANCHES, seeds)}
+    pooled = pooled or {}
+    bias = {b: _fit_branch(data, b, config, int(seed), campaign.root, pooled.get(b))
+            for b, seed in zip(BRANCHES, seeds)}
     return FittedModel(
         surrogate=surrogate, bias_=bias, config=config, holdout=sorted(held),
         columns={b: data.branch(b).columns for b in BRANCHES}, training_tests=train,
@@ -430,9 +443,10 @@ def holdout_tests(campaign: Campaign, holdout) -> set[str]:
     return held
 
 
-def _fit_branch(data: BiasData, branch: str, config: MethodConfig, seed: int, root):
+def _fit_branch(data: BiasData, branch: str, config: MethodConfig, seed: int, root, pooled_gp=None):
     """One branch's GMMGPBias (wrapped in the onset correction on the loading branch where the config
-    asks); None for an unloading branch without data (zero bias there)."""
+    asks; ``pooled_gp`` as :meth:`GMMGPBias.fit` takes it); None for an unloading branch without data
+    (zero bias there)."""
     d = data.branch(branch)
     if d.y.size == 0 and branch == "unloading":
         return None
@@ -441,7 +455,7 @@ def _fit_branch(data: BiasData, branch: str, config: MethodConfig, seed: int, ro
         est = OnsetCorrectedBias(base=est, time=functools.partial(nominal_time, d.columns), random_state=seed,
                                  blas_threads=est.blas_threads)
     try:
-        return est.fit(d.X, d.y, d.groups)
+        return est.fit(d.X, d.y, d.groups, pooled_gp=pooled_gp)
     except TooFewPointsError as err:  # too few points for K and the GP parameters
         raise InputError(f"{branch} branch, {d.y.size} bias points from {len(set(d.groups))} tests: {err}",
                          root, "k") from None

@@ -67,7 +67,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         self.blas_threads = blas_threads
         self.random_state = random_state
 
-    def fit(self, X, y, groups):
+    def fit(self, X, y, groups, pooled_gp=None):
         """Fit the base model on every row, then the correction GP on its held-out residuals.
 
         Parameters
@@ -76,6 +76,8 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         y : array_like, shape (n,)
         groups : array_like, shape (n,)
             Test of each row.
+        pooled_gp : KrigingGP, optional
+            Passed to the base model's ``fit`` (:meth:`GMMGPBias.fit`).
 
         Returns
         -------
@@ -83,7 +85,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         """
         X, y = validate_data(self, X, y, y_numeric=True)
         groups = np.asarray(groups)
-        self.base_ = clone(self.base).fit(X, y, groups)
+        self.base_ = clone(self.base).fit(X, y, groups, pooled_gp=pooled_gp)
         self.onset_gp_ = None
         rows = stratified_subset(groups, self.max_rows)
         t = np.asarray(self.time(X[rows]), dtype=float)
@@ -103,6 +105,10 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
     def gps_(self):
         """The base model's GPs."""
         return self.base_.gps_
+
+    def all_rows_gp(self):
+        """The base model's :meth:`GMMGPBias.all_rows_gp`."""
+        return self.base_.all_rows_gp()
 
     def correction(self, X):
         """The onset correction at ``X`` (y units), shape (m,): 0 from ``window[1]`` on."""

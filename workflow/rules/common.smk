@@ -40,6 +40,20 @@ def method_args():
     return " ".join(flags)
 
 
+# The input modes whose K > 1 models pool by default (crashfuse.method.config; method.pooled overrides).
+POOLED_INPUTS = ["state"]
+
+
+def pooled_model(wildcards):
+    """The fold's model of the smallest K, whose pooled GP a larger K's `train` reuses (`crashfuse fit
+    --pooled-from`: the same fit, made once); nothing for the smallest K or a mode that does not pool."""
+    k_min = min(config["ks"])
+    pools = wildcards.inputs in POOLED_INPUTS if METHOD["pooled"] is None else METHOD["pooled"]
+    if not pools or wildcards.model == f"K{k_min}":
+        return []
+    return fold_path("model.cfmodel").format(inputs=wildcards.inputs, model=f"K{k_min}", test=wildcards.test)
+
+
 def fold_path(name):
     """`<results>/folds/{inputs}/{model}/{test}/<name>`: a file of one fold (model, prediction, rollout facts,
     ISO rows, coverage, fold JSON, figure), wildcards kept; `model` is `K<k>`, or `auto` (inputs `auto`)."""

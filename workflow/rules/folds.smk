@@ -1,10 +1,14 @@
 # One leave-one-test-out fold (input mode x K x held-out test) as the method's steps, each a job:
 # train (the bias models fitted without the test; its model file refers to the shared surrogate file) -> rollout (its condition predicted, with the band)
 # -> score (ISO rows, band coverage, fold JSON) and figure. A change of the ISO windows reruns only
-# score; of the Monte Carlo samples, rollout and after; of a method setting, train and after. The
-# jobs of one fold share a group, so a cluster executor can run a fold's chain as one job. With
+# score; of the Monte Carlo samples, rollout and after; of a method setting, train and after. A
+# larger K's train reuses the pooled GP in the smallest K's model of the same test (the same fit).
+# The jobs of one fold share a group, so a cluster executor can run a fold's chain as one job (one
+# group per fold: under one name for all, the pooled-GP edge would merge a test's folds). With
 # `auto`, each test's `auto` job picks among its candidates' rollouts (inner error), and that
 # fold (inputs and model `auto`) is scored and drawn by the same rules.
+
+FOLD_GROUP = "fold-{inputs}-{model}-{test}"
 
 
 wildcard_constraints:
@@ -17,6 +21,7 @@ rule train:
     input:
         campaign=campaign_dir,
         surrogate=f"{RESULTS}/surrogate.cfmodel",
+        pooled=pooled_model,
     output:
         fold_path("model.cfmodel"),
     wildcard_constraints:
@@ -25,15 +30,17 @@ rule train:
     params:
         k=lambda wildcards: wildcards.model[1:],
         method=method_args(),
+        pooled=lambda wildcards, input: f"--pooled-from {shlex.quote(input.pooled)}" if input.pooled else "",
     group:
-        "fold"
+        FOLD_GROUP
     log:
         f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/train.log",
     benchmark:
         f"{RESULTS}/benchmarks/folds/{{inputs}}/{{model}}/{{test}}/train.tsv"
     shell:
         "crashfuse fit {input.campaign:q} --k {params.k} --inputs {wildcards.inputs}"
-        " --holdout {wildcards.test:q} --surrogate {input.surrogate:q} {params.method} --out {output:q}"
+        " --holdout {wildcards.test:q} --surrogate {input.surrogate:q} {params.method} {params.pooled}"
+        " --out {output:q}"
         " > {log:q} 2>&1"
 
 
@@ -53,7 +60,7 @@ rule rollout:
         inner=lambda wildcards: "--inner" if config["auto"] and wildcards.inputs in AUTO_INPUTS else "",
         out=lambda wildcards, output: Path(output.facts).parent,
     group:
-        "fold"
+        FOLD_GROUP
     log:
         f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/rollout.log",
     benchmark:
@@ -77,7 +84,7 @@ rule score:
         windows=" ".join(config["scoring"]["windows"]),
         out=lambda wildcards, output: Path(output.json).parent,
     group:
-        "fold"
+        FOLD_GROUP
     log:
         f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/score.log",
     shell:
@@ -99,7 +106,7 @@ rule figure:
     params:
         title=fold_title,
     group:
-        "fold"
+        FOLD_GROUP
     log:
         f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/figure.log",
     shell:
