@@ -14,7 +14,8 @@ data_s        bias data (projection and thinning of every test)
 search_s      likelihood search (theta-bound candidates x restarts, ``choose_theta_bound``)
 scatter_s     the test-to-test scatter's refits, one per training test (``scatter_needs``)
 condition_s   conditioning on the data (``condition``, outside the scatter refits)
-onset_s       the onset correction's input: its base model's held-out residuals (its 1-D GP is cheap)
+onset_s       the onset correction's input: its base model's held-out residuals
+onset_gp_s    the onset correction's 1-D GP over time (its fit on the early rows)
 
 rows (bias rows, both branches) and peak_GB (the process's peak RSS) follow; the last lines give
 the log-log slope of each column between the smallest and the largest size (time ~ N^slope).
@@ -45,8 +46,11 @@ PARTS = {  # column -> (module file suffix, function name) whose cumulative time
     "condition_s": ("gp/kriging.py", "_condition"),
     "onset_s": ("method/mixture.py", "grouped_residuals"),  # the base model's held-out residuals it learns
 }
+CALLED_FROM = {  # column -> (callee, caller): the callee's cumulative time in calls from that caller
+    "onset_gp_s": (("gp/kriging.py", "fit"), ("method/onset.py", "fit")),
+}
 COLUMNS = ["tests", "rows", "surrogate_s", "fit_s", "predict_s", "data_s", "search_s", "scatter_s",
-           "condition_s", "onset_s", "peak_GB"]
+           "condition_s", "onset_s", "onset_gp_s", "peak_GB"]
 
 
 def campaign(n_tests: int, n_cae: int):
@@ -91,11 +95,14 @@ def measure(n_tests: int, n_cae: int, k: int, inputs: str, n_samples: int, exact
 
 def _parts(profile) -> dict:
     stats = pstats.Stats(profile).stats
-    out = dict.fromkeys(PARTS, 0.0)
-    for (path, _, name), (_, _, _, cumulative, _) in stats.items():
+    out = dict.fromkeys([*PARTS, *CALLED_FROM], 0.0)
+    for (path, _, name), (_, _, _, cumulative, callers) in stats.items():
         for column, (suffix, func) in PARTS.items():
             if name == func and path.endswith(suffix):
                 out[column] += cumulative  # each function is entered from outside itself only once here
+        for column, ((suffix, func), (caller_suffix, caller)) in CALLED_FROM.items():
+            if name == func and path.endswith(suffix):
+                out[column] += sum(c[3] for (p, _, n), c in callers.items() if n == caller and p.endswith(caller_suffix))
     return out
 
 

@@ -402,7 +402,7 @@ def _diagnose(args) -> int:
     surrogate = _read_surrogate(args, campaign)
     diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, alpha=args.alpha, move=args.move,
                     k=args.k, inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
-                    in_sample=args.in_sample, residual_model=not args.no_residual)
+                    in_sample=args.in_sample, residual_model=not args.no_residual, n_jobs=args.jobs)
     out = write_diagnosis(diag, args.out, campaign)
     print(f"verdict: {', '.join(diag.verdict) or 'none'} -> {out / 'diagnosis.md'}")
     return 0
@@ -796,6 +796,8 @@ def _add_diagnose(sub) -> None:
     s.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
     s.add_argument("--in-sample", action="store_true", help="allow a single test (no hold-out; evidence in-sample)")
     s.add_argument("--no-residual", action="store_true", help="skip the GMM-GPR rows of the shrink table (faster)")
+    s.add_argument("--jobs", type=_positive, default=2,
+                   help="worker processes for the GMM-GPR folds of the shrink table (default 2)")
     s.add_argument("--out", required=True, help="output folder")
     s.set_defaults(func=_diagnose)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from crashfuse.catalogue import EFFECTS
@@ -171,6 +172,22 @@ def test_diagnosis_files(damping_world, tmp_path):
     assert {"intervals", "windows", "regimes"} <= set(js["regions"])
     for name in ("effects.png", "bias_map.png", "gap_pulses.png"):
         assert (out / "figures" / name).stat().st_size > 0
+
+
+def test_the_shrink_tables_gmm_gpr_rows_are_the_same_on_any_number_of_workers(damping_world):
+    """The GMM-GPR alone and on the residual of CAE + effects, leave-one-test-out (the slow part of a
+    diagnosis): a row per test and window for each, the same numbers on one process and on two (to the
+    last bits: worker processes sum some BLAS products in another order, 1e-11 here)."""
+    campaign, _ = damping_world
+    tests = campaign.tests[::3]
+    small = campaign.subset(tests + [campaign.companion(t).run_id for t in tests] + campaign.cae)
+    shrink = [diagnose(small, effects=("damping",), n_samples=20, regions=False, n_jobs=n, progress=None).shrink
+              for n in (1, 2)]
+    pd.testing.assert_frame_equal(*shrink, check_exact=False, rtol=0, atol=1e-9)
+    for model in ("CAE", "CAE+effects", "GMM-GPR", "CAE+effects+GMM-GPR"):
+        rows = shrink[0][shrink[0].model == model]
+        assert sorted(rows.test_id) == sorted(t for t in tests for _ in range(3)), model
+        assert rows.overall.between(0, 1).all()
 
 
 def test_headlines():

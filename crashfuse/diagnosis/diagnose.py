@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from joblib import Parallel, delayed
 
 from crashfuse.catalogue import EFFECTS, V_REF, check_effect
 from crashfuse.gp.threads import one_blas_thread
@@ -109,7 +110,7 @@ class Diagnosis:
 def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, alpha: float = ALPHA,
              move: float = MOVE, k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
              surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,
-             regions: bool = True, progress=print) -> Diagnosis:
+             regions: bool = True, n_jobs: int = 1, progress=print) -> Diagnosis:
     """Diagnose the gap between a campaign's CAE runs and its tests.
 
     Parameters
@@ -139,6 +140,9 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
         Compute the two GMM-GPR rows of the shrink table (the slow part).
     regions : bool
         Locate the gap (:func:`crashfuse.diagnosis.gap.locate_gap`, with the same ``k``); needs two tests.
+    n_jobs : int
+        Worker processes for the GMM-GPR folds of the shrink table (the same numbers with any, to about
+        1e-11: workers sum some BLAS products in another order than the main process).
     progress : callable or None
 
     Raises
@@ -161,7 +165,7 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
              "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
     shrink = _shrink(campaign, case, preds, current, k, inputs, n_samples, random_state, surrogate,
-                     holdout and residual_model, say)
+                     holdout and residual_model, n_jobs, say)
     settings = dict(effects=list(effects), threshold=threshold, alpha=alpha, move=move, k=k, inputs=inputs,
                     n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware)
     gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
@@ -258,7 +262,7 @@ def _rms_g(mse: np.ndarray) -> float:
     return float(np.sqrt(mse.mean()) / G0)
 
 
-def _shrink(campaign, case, preds, fits, k, inputs, n_samples, random_state, surrogate, residual, say):
+def _shrink(campaign, case, preds, fits, k, inputs, n_samples, random_state, surrogate, residual, n_jobs, say):
     rows = []
     for model, decel in preds.items():
         for i, t in enumerate(case.test_ids):
@@ -266,19 +270,26 @@ def _shrink(campaign, case, preds, fits, k, inputs, n_samples, random_state, sur
     if residual:
         from crashfuse.evaluation.loto import evaluate
         label = f"K{k}"
-        say("diagnose: GMM-GPR alone (leave-one-test-out)")
-        quick = dict(n_jobs=1, surrogate=surrogate, progress=None, use_companion=True,
+        say(f"diagnose: GMM-GPR alone (leave-one-test-out), {n_jobs} jobs")
+        quick = dict(ks=(k,), inputs=(inputs,), n_samples=n_samples, random_state=random_state, surrogate=surrogate,
+                     progress=None, use_companion=True,
                      estimate_scatter=False)  # only the mean is scored here: no test-to-test scatter needed
-        plain = evaluate(campaign, ks=(k,), inputs=(inputs,), n_samples=n_samples, random_state=random_state,
-                         **quick).iso_table
-        rows += _relabel(plain, label, "GMM-GPR")
-        say("diagnose: CAE + effects + GMM-GPR residual (leave-one-test-out)")
-        for i, t in enumerate(case.test_ids):
-            mod = _effects_campaign(campaign, case, fits, i)
-            res = evaluate(mod, ks=(k,), inputs=(inputs,), n_samples=n_samples, random_state=random_state,
-                           holdout=[t], **quick).iso_table
-            rows += _relabel(res, label, "CAE+effects+GMM-GPR")
+        rows += _relabel(evaluate(campaign, n_jobs=n_jobs, **quick).iso_table, label, "GMM-GPR")
+        say(f"diagnose: CAE + effects + GMM-GPR residual (leave-one-test-out), {n_jobs} jobs")
+        folds = Parallel(n_jobs=n_jobs)(delayed(_effects_fold)(campaign, case, fits, i, quick)
+                                        for i in range(len(case.test_ids)))
+        for iso in folds:
+            rows += _relabel(iso, label, "CAE+effects+GMM-GPR")
     return pd.DataFrame(rows, columns=["test_id", "model", "window_ms", *SCORES])
+
+
+def _effects_fold(campaign, case, fits, fold, quick) -> pd.DataFrame:
+    """ISO table of the GMM-GPR fold holding out test ``fold`` on the campaign whose CAE runs are CAE + effects
+    (that fold's effect fit)."""
+    from crashfuse.evaluation.loto import evaluate
+
+    mod = _effects_campaign(campaign, case, fits, fold)
+    return evaluate(mod, holdout=[case.test_ids[fold]], n_jobs=1, **quick).iso_table
 
 
 def _relabel(iso: pd.DataFrame, label: str, name: str) -> list[dict]:

@@ -24,8 +24,9 @@ rule diagnose:
         f"{RESULTS}/logs/diagnose.log",
     benchmark:
         f"{RESULTS}/benchmarks/diagnose.tsv"
+    threads: 1  # beside the folds; --set-threads diagnose=2 on a machine of its own
     shell:
-        "crashfuse diagnose {input.campaign:q} --surrogate {input.surrogate:q} --effects {params.effects} "
+        "crashfuse diagnose {input.campaign:q} --surrogate {input.surrogate:q} --effects {params.effects} --jobs {threads} "
         "{params.flags} --out {params.out:q} > {log:q} 2>&1"
 
 
