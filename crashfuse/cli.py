@@ -797,7 +797,8 @@ def _add_diagnose(sub) -> None:
     s.add_argument("--in-sample", action="store_true", help="allow a single test (no hold-out; evidence in-sample)")
     s.add_argument("--no-residual", action="store_true", help="skip the GMM-GPR rows of the shrink table (faster)")
     s.add_argument("--jobs", type=_positive, default=2,
-                   help="worker processes for the GMM-GPR folds of the shrink table (default 2)")
+                   help="worker processes for a round's candidate effects and the shrink table's GMM-GPR "
+                        "folds (default 2)")
     s.add_argument("--out", required=True, help="output folder")
     s.set_defaults(func=_diagnose)
 

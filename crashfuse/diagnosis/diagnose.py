@@ -141,8 +141,9 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     regions : bool
         Locate the gap (:func:`crashfuse.diagnosis.gap.locate_gap`, with the same ``k``); needs two tests.
     n_jobs : int
-        Worker processes for the GMM-GPR folds of the shrink table (the same numbers with any, to about
-        1e-11: workers sum some BLAS products in another order than the main process).
+        Worker processes for the candidate effects of a selection round and the GMM-GPR folds of the
+        shrink table (the same numbers with any, to about 1e-11: workers sum some BLAS products in
+        another order than the main process).
     progress : callable or None
 
     Raises
@@ -161,7 +162,8 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     n = len(case.test_ids)
     sets = loto_sets(n) if holdout else [[0], [0]]  # a single test: its in-sample fit, twice
     cae = fit_folds(case, (), sets)
-    chosen, candidates, current = _select(case, sets, cae, effects, _rule(threshold, alpha, move, holdout), say)
+    chosen, candidates, current = _select(case, sets, cae, effects, _rule(threshold, alpha, move, holdout), n_jobs,
+                                          say)
     preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
              "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
     shrink = _shrink(campaign, case, preds, current, k, inputs, n_samples, random_state, surrogate,
@@ -172,10 +174,10 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap)
 
 
-def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, say):
-    """Greedy forward selection on held-out evidence over the training ``sets`` of ``cae``;
-    ``rule`` holds :func:`crashfuse.diagnosis.evidence.judge`'s threshold, alpha and move.
-    Returns (chosen, candidates, final fits)."""
+def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: int, say):
+    """Greedy forward selection on held-out evidence over the training ``sets`` of ``cae``, a round's
+    candidates fitted on ``n_jobs`` processes; ``rule`` holds :func:`crashfuse.diagnosis.evidence.judge`'s
+    threshold, alpha and move. Returns (chosen, candidates, final fits)."""
     n = len(case.test_ids)
     chosen, candidates, current = [], {}, cae
     ref_pred, reference = _heldout(case, cae)
@@ -186,8 +188,9 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, say):
         if not remaining:
             break
         preds = {}
-        for e in remaining:
-            fits = fit_folds(case, (*chosen, e), sets, start=warm_start(case, current, e))
+        round_fits = Parallel(n_jobs=n_jobs)(
+            delayed(fit_folds)(case, (*chosen, e), sets, start=warm_start(case, current, e)) for e in remaining)
+        for e, fits in zip(remaining, round_fits):
             preds[e], mse = _heldout(case, fits)
             change = _rms(case, preds[e] - ref_pred)
             ev = judge(reference, mse, change, test_rms, groups=_groups(case, fits, e), **rule)
