@@ -703,6 +703,29 @@ def test_onset_correction_fades_out_and_leaves_bands_to_the_base_model(onset_mod
     assert onset_model.gps_ is onset_model.base_.gps_
 
 
+def test_onset_gp_fitted_on_a_share_of_many_early_rows_corrects_as_the_one_fitted_on_all(monkeypatch):
+    """Past ONSET_FIT_ROWS early rows (a library of dozens of tests) the correction GP's likelihood runs on an
+    even share of each test's, and it conditions on all: at new speeds it corrects as well as the fit on
+    every row. (The cap here is 250 of 487 rows, not 1000 of ~1200: the same mechanism, seconds not minutes.)"""
+    import crashfuse.method.onset as onset
+
+    X, y, groups = _onset_data(per=100)  # the six tests of the fixture, sampled densely
+
+    def fit(cap):
+        monkeypatch.setattr(onset, "ONSET_FIT_ROWS", cap)
+        base = GMMGPBias(n_clusters=1, trend="zero", random_state=0, estimate_scatter=False)
+        return OnsetCorrectedBias(base=base, time=_time, window=(1.0, 1.3), random_state=0).fit(X, y, groups)
+
+    capped, every = fit(250), fit(None)
+    n_early = int(np.sum(_time(X) < 1.3))
+    assert capped.onset_gp_.n_fit_ <= 252 < n_early == capped.onset_gp_.n_condition_ == every.onset_gp_.n_fit_
+    new, truth, _ = _onset_data(speeds=(9.0, 12.5))
+    early = _time(new) < 1.3
+    err = {name: np.sqrt(np.mean((m.predict(new) - truth)[early] ** 2))
+           for name, m in (("base", capped.base_), ("capped", capped), ("every", every))}
+    assert err["every"] < 0.5 * err["base"] and err["capped"] <= 1.05 * err["every"]
+
+
 def test_onset_correction_needs_three_tests_in_its_window():
     X, y, groups = _onset_data(speeds=(4.0, 6.0))
     model = OnsetCorrectedBias(base=GMMGPBias(trend="zero", random_state=0), time=_time, window=(1.0, 1.3)).fit(X, y, groups)
