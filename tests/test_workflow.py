@@ -117,6 +117,7 @@ def test_reproduce_removes_a_lock_only_no_snakemake_holds(tmp_path):
     (locks / "0.input.lock").write_text(str(tmp_path))
     holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "snakemake", str(tmp_path)])
     try:
+        _wait_for_exec(holder.pid, b"snakemake")  # until exec, /proc shows the forking pytest worker's command
         assert reproduce.snakemake_running_in(tmp_path)
         assert not reproduce.release_stale_lock(TEST_CONFIG, tmp_path) and any(locks.iterdir())
     finally:
@@ -125,6 +126,14 @@ def test_reproduce_removes_a_lock_only_no_snakemake_holds(tmp_path):
     assert not reproduce.snakemake_running_in(tmp_path)
     assert reproduce.release_stale_lock(TEST_CONFIG, tmp_path) and not any(locks.glob("*"))
     assert not reproduce.release_stale_lock(TEST_CONFIG, tmp_path)  # nothing left to remove
+
+
+def _wait_for_exec(pid: int, word: bytes, timeout: float = 10.0) -> None:
+    cmdline = Path(f"/proc/{pid}/cmdline")
+    deadline = time.monotonic() + timeout
+    while word not in cmdline.read_bytes():
+        assert time.monotonic() < deadline, f"process {pid} never showed {word!r} in its command line"
+        time.sleep(0.02)
 
 
 # --- DAG ------------------------------------------------------------------------------------------
