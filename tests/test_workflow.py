@@ -95,6 +95,22 @@ def test_bad_config_is_refused_naming_the_key(bad, named):
         validate(bad, str(SCHEMA))
 
 
+def test_the_workflows_copies_of_package_defaults_match_the_package():
+    """common.smk names the auto model's and the pooling input modes without importing the package (1.5 s
+    on every Snakemake start); they must stay the package's."""
+    import ast
+
+    from crashfuse.evaluation.fold import AUTO_INPUTS
+    from crashfuse.method.config import MethodConfig
+    from crashfuse.method.projection import INPUTS
+
+    text = (ROOT / "workflow" / "rules" / "common.smk").read_text()
+    copied = {name: ast.literal_eval(re.search(rf"^{name} = (\[.*\])$", text, re.M).group(1))
+              for name in ("AUTO_INPUTS", "POOLED_INPUTS")}
+    assert copied["AUTO_INPUTS"] == list(AUTO_INPUTS)
+    assert copied["POOLED_INPUTS"] == [m for m in INPUTS if MethodConfig(inputs=m).bias_params()["pooled"]]
+
+
 def test_snakemake_refuses_a_bad_config_before_running(tmp_path):
     done = snakemake(tmp_path, "-n", configfile=write_config(tmp_path / "c.yaml", ks=[0]), check=False)
     assert done.returncode != 0

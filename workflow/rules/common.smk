@@ -40,7 +40,8 @@ def method_args():
     return " ".join(flags)
 
 
-# The input modes whose K > 1 models pool by default (crashfuse.method.config; method.pooled overrides).
+# The input modes whose K > 1 models pool by default (crashfuse.method.config; method.pooled overrides;
+# tests/test_workflow.py holds this copy to the package).
 POOLED_INPUTS = ["state"]
 
 
