@@ -109,8 +109,12 @@ CATALOGUE = {e.name: e for e in (
                Quantity("springback_floor", "m", "spring-back after a vanishing peak force (bumper foam, elastic "
                         "beams)"),
                Quantity("springback_stiffness", "N/m", "peak force per unit of the spring-back that grows with it"),
+               Quantity("initial_decay_floor", "m", "after a vanishing peak force, the crush recovered over which "
+                        "the force would reach zero at the rate it starts to fall"),
+               Quantity("initial_unloading_stiffness", "N/m", "how steeply the force falls as unloading starts, "
+                        "at a large peak force (force per metre of recovered crush)"),
                Quantity("unloading_exponent", "-", "shape of the force's fall over the spring-back (1: linear; "
-                        "larger: falls faster at first)"),
+                        "larger: falls faster at first; without bound: exponential)"),
                Quantity("zero_force_travel_ratio", "-", "travel from maximum crush to zero force, as a multiple "
                         "of the spring-back scale (an exponential law's residual set)"))),
     Effect("mass", "the decelerating mass exceeds the nominal test weight (ballast, instrumentation, cables)", (

@@ -122,9 +122,11 @@ def _world_validate(args) -> int:
     from crashfuse.world.validation import N_CAE, validate
 
     table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds,
-                     n_cae=args.n_cae or N_CAE, worlds=args.worlds)
+                     n_cae=args.n_cae or N_CAE, worlds=args.worlds, pairs=args.pairs)
     runs = table.drop_duplicates(["world", "withheld", "strength", "seed"])
-    print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with the right first effect -> {args.out}")
+    exact = runs["all_named"] & runs["spurious"].fillna("").eq("")
+    print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with a right first effect, "
+          f"{int(exact.sum())} with exactly the withheld effects -> {args.out}")
     return 0
 
 
@@ -639,6 +641,9 @@ def _add_world_validate(wsub) -> None:
     s.add_argument("--seeds", nargs="+", type=_seed, default=[0], help="world seeds (default 0)")
     s.add_argument("--worlds", nargs="+", choices=("first", "multibody"), default=["first"],
                    help="worlds whose campaigns are diagnosed (default first; multibody scores the verdict only)")
+    s.add_argument("--pairs", action="store_true",
+                   help="also withhold every pair of the effects together (in the multibody world; the first "
+                        "withholds one at a time)")
     s.add_argument("--n-cae", type=_positive, default=None,
                    help="CAE runs per campaign besides the companions (default: the harness's N_CAE)")
     s.add_argument("--out", required=True, help="output folder for validation.csv and validation.md")

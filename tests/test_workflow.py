@@ -231,6 +231,14 @@ def test_method_matrix_is_its_own_target_with_the_config_spread(tmp_path):
     assert "--seeds 4 " in done.stdout and "--n-cae 150 1000" in done.stdout
 
 
+def test_diagnosis_validation_is_its_own_target_with_the_config_spread(tmp_path):
+    config = write_config(tmp_path / "c.yaml", validation={"worlds": ["multibody"], "seeds": [3], "n_cae": 40})
+    assert "validate_diagnosis" not in job_counts(snakemake(tmp_path, "-n", configfile=config).stdout)
+    done = snakemake(tmp_path, "-n", "-p", "results/diagnosis/validation.csv", configfile=config)
+    assert job_counts(done.stdout) == {"validate_diagnosis": 1}
+    assert "world validate --worlds multibody --strengths realistic subtle --seeds 3 --pairs --n-cae 40" in done.stdout
+
+
 def test_lint_is_clean_except_the_conda_advice(tmp_path):
     """The only lint is the conda/container advice: this workflow installs with pip (docs/workflow.md)."""
     done = snakemake(tmp_path, "--lint", check=False)

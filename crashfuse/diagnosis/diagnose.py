@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 from joblib import Parallel, delayed
 
-from crashfuse.catalogue import EFFECTS, V_REF, check_effect
+from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect
 from crashfuse.gp.threads import one_blas_thread
 from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, predict,
                                          test_case, warm_start)
@@ -386,9 +386,10 @@ def reading(effect: str, p: dict, case: TestCase) -> str:
     if effect == "mass":
         return f"the decelerating mass is about {p['mass.extra']:.0f} kg more than the nominal test weight"
     if effect == "unloading":
-        return (f"after maximum crush the force falls along a power law (exponent {p['unloading.n']:.2f}) over an "
-                f"elastic spring-back of {1e3 * p['unloading.d0']:.1f} mm plus 1 mm per "
-                f"{p['unloading.k'] / 1e3 / 1e3:.0f} kN of peak force")
+        lam = p["unloading.l0"] + F_REF / p["unloading.k"]
+        return (f"after maximum crush the force falls along a power law (exponent {p['unloading.n']:.2f}): from "
+                f"a {F_REF / 1e3:.0f} kN peak, at first as fast as an exponential decay over {1e3 * lam:.1f} mm, reaching "
+                f"zero after {1e3 * p['unloading.n'] * lam:.0f} mm")
     parts = [f"{p[f'powertrain.mass[{lab}]']:.0f} kg ({lab}) after {1e3 * p[f'powertrain.gap[{lab}]']:.0f} mm"
              for lab in case.plant.labels]
     return (f"a powertrain mass is stopped by the barrier once the crush closes its gap: {'; '.join(parts)}; "

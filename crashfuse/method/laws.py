@@ -32,9 +32,13 @@ The laws (each one modifies the balance; their order does not matter):
     forces are not multiplied (without ``da/dv`` the whole CAE force counts as static).
 ``damping``      Viscous (Kelvin-Voigt) crush damping ``F_extra += c v`` on both branches (``c`` N s/m).
 ``unloading``    Hysteretic power-law unloading, replacing the CAE unloading: with the static force
-    at maximum crush ``F_m = M a_CAE(s_max, 0)`` and the elastic spring-back
-    ``delta = d0 + F_m / k``, ``F_crush = F_m ((delta - u) / delta)^n`` for ``u < delta``, else 0
-    (``k`` N/m, ``d0`` m, ``n``).
+    at maximum crush ``F_m = M a_CAE(s_max, 0)`` and the initial decay length
+    ``lam = l0 + F_m / k`` (the force falls at first by ``F_m / lam`` per metre: ``k`` is the
+    initial unloading stiffness at a large peak force), ``F_crush = F_m (1 - u / (n lam))^n`` for
+    ``u < n lam`` (the elastic spring-back), else 0 (``k`` N/m, ``l0`` m, ``n``). Parametrised by
+    the initial fall, the family holds the exponential ``F_m exp(-u / lam)`` as ``n`` grows: an
+    unloading that falls fast and then tails off (a residual set reached slowly) is ``n`` at its
+    upper bound, not beyond what is physical.
 ``powertrain``   A second mass ``m_p`` (per powertrain label) riding in the body is arrested by the
     barrier once the crush closes its gap ``g``: from then on it leaves the decelerating mass
     (``M_eff -= m_p``; its momentum goes into the barrier) and the body drives into it through
@@ -66,8 +70,8 @@ QUANTITIES = {
     "powertrain.mass": "mass",
     "powertrain.gap": "gap",
     "powertrain.f_mount": "mount_yield_force",
-    "unloading.k": "springback_stiffness",
-    "unloading.d0": "springback_floor",
+    "unloading.k": "initial_unloading_stiffness",
+    "unloading.l0": "initial_decay_floor",
     "unloading.n": "unloading_exponent",
     "mass.extra": "extra",
 }
@@ -304,8 +308,8 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
                 _param("strain_rate.q", 1.0, 12.0, (3.0, 6.0)))
     if effect == "unloading":
         return (_param("unloading.k", 1e5, 1e10, (1e7, 1e8)),
-                _param("unloading.d0", 1e-4, 0.1, (0.005, 0.02)),
-                _param("unloading.n", 0.3, 6.0, (1.5, 1.0)))
+                _param("unloading.l0", 1e-4, 0.1, (0.003, 0.01)),
+                _param("unloading.n", 0.3, 30.0, (1.5, 1.0), upper_is_limit=False))  # 30: an exponential
     if effect == "mass":
         return (_param("mass.extra", 1.0, 0.5 * mass_hint, (50.0, 200.0)),)
     per_label = [p for lab in labels for p in (
@@ -350,9 +354,9 @@ def decel_fn(plant: Plant, effects, theta: dict):
             rate = np.maximum(st.v, 0.0) / theta["strain_rate.d"]
             force = np.where(load, force + plant.mass * a_rest * rate ** (1.0 / theta["strain_rate.q"]), force)
         if "unloading" in effects:
-            delta = theta["unloading.d0"] + f_max / theta["unloading.k"]
-            frac = np.clip((delta - st.u) / delta, 0.0, 1.0)
-            force = np.where(load, force, f_max * frac ** theta["unloading.n"])
+            n = theta["unloading.n"]
+            frac = np.clip(1.0 - st.u / (n * (theta["unloading.l0"] + f_max / theta["unloading.k"])), 0.0, 1.0)
+            force = np.where(load, force, f_max * frac ** n)
         mass = plant.mass + (theta["mass.extra"] if "mass" in effects else 0.0)
         if "damping" in effects:
             force = force + theta["damping.c"] * st.v
@@ -400,7 +404,7 @@ def headline(effect: str, params: dict) -> dict:
     Where two parameters trade off against each other, the headline is the combination the data
     fix: ``strain_rate``: the force increase at the crush speed :data:`~crashfuse.catalogue.V_REF`,
     ``(V_REF / d)^(1/q)``; ``unloading``: the elastic spring-back from a peak force
-    :data:`~crashfuse.catalogue.F_REF`, ``d0 + F_REF / k``. Others: the effect's defining
+    :data:`~crashfuse.catalogue.F_REF`, ``n (l0 + F_REF / k)``. Others: the effect's defining
     parameter (``powertrain``: the arrested mass of each label).
 
     Returns
@@ -412,7 +416,8 @@ def headline(effect: str, params: dict) -> dict:
     if effect == "strain_rate":
         return {key(effect, "gain_at_15mps"): (V_REF / params["strain_rate.d"]) ** (1.0 / params["strain_rate.q"])}
     if effect == "unloading":
-        return {key(effect, "springback_at_500kN"): params["unloading.d0"] + F_REF / params["unloading.k"]}
+        lam = params["unloading.l0"] + F_REF / params["unloading.k"]  # the initial decay length at F_REF
+        return {key(effect, "springback_at_500kN"): params["unloading.n"] * lam}
     if effect == "powertrain":
         return {k: v for k, v in params.items() if k.startswith("powertrain.mass[")}
     name = {"damping": "c", "mass": "extra"}[effect]

@@ -38,11 +38,14 @@ rule validate_diagnosis:
         out=lambda wildcards, output: Path(output.table).parent,
         strengths=" ".join(config["validation"]["strengths"]),
         seeds=" ".join(str(s) for s in config["validation"]["seeds"]),
+        worlds=" ".join(config["validation"]["worlds"]),
+        pairs="--pairs" if config["validation"]["pairs"] else "",
+        n_cae=config["validation"]["n_cae"],
     log:
         f"{RESULTS}/logs/validate_diagnosis.log",
     shell:
-        "crashfuse world validate --strengths {params.strengths} --seeds {params.seeds} "
-        "--out {params.out:q} > {log:q} 2>&1"
+        "crashfuse world validate --worlds {params.worlds} --strengths {params.strengths} --seeds {params.seeds} "
+        "{params.pairs} --n-cae {params.n_cae} --out {params.out:q} > {log:q} 2>&1"
 
 
 MATRIX = config["validation"]["method"]
