@@ -344,19 +344,24 @@ def decel_fn(plant: Plant, effects, theta: dict):
     pt = _powertrain_arrays(plant, theta) if "powertrain" in effects else None
     unl0 = np.maximum(plant.a_unload[:, 0], 1e-9)
 
-    def decel(st: State) -> np.ndarray:
-        load = st.loading
+    def unloading_force(st: State) -> np.ndarray:
         f_max = plant.mass * plant.at_rest(st.s_max)  # static crush force at maximum crush (N)
-        ratio = np.maximum(f_max / (plant.mass * unl0), 1e-6)
-        a_crush, a_rest = plant.loading(st.s, st.v)
-        force = np.where(load, plant.mass * a_crush, f_max * plant.unloading(st.u / ratio) / unl0)
-        if "strain_rate" in effects:
-            rate = np.maximum(st.v, 0.0) / theta["strain_rate.d"]
-            force = np.where(load, force + plant.mass * a_rest * rate ** (1.0 / theta["strain_rate.q"]), force)
         if "unloading" in effects:
             n = theta["unloading.n"]
             frac = np.clip(1.0 - st.u / (n * (theta["unloading.l0"] + f_max / theta["unloading.k"])), 0.0, 1.0)
-            force = np.where(load, force, f_max * frac ** n)
+            return f_max * frac ** n
+        ratio = np.maximum(f_max / (plant.mass * unl0), 1e-6)
+        return f_max * plant.unloading(st.u / ratio) / unl0
+
+    def decel(st: State) -> np.ndarray:
+        load = st.loading
+        a_crush, a_rest = plant.loading(st.s, st.v)
+        force = plant.mass * a_crush
+        if "strain_rate" in effects:
+            rate = np.maximum(st.v, 0.0) / theta["strain_rate.d"]
+            force = force + plant.mass * a_rest * rate ** (1.0 / theta["strain_rate.q"])
+        if not load.all():  # most of a batched rollout's steps are loading only: no unloading lookups
+            force = np.where(load, force, unloading_force(st))
         mass = plant.mass + (theta["mass.extra"] if "mass" in effects else 0.0)
         if "damping" in effects:
             force = force + theta["damping.c"] * st.v
