@@ -116,12 +116,13 @@ class Plant:
     ----------
     s_step, u_step : float
         Uniform grid steps in m of the loading (from s = 0) and unloading (from u = 0) tables.
-    a_rest : ndarray, shape (n, n_s)
-        CAE loading deceleration (m/s^2) of each of ``n`` conditions on the s grid at zero crush
-        speed: ``a_CAE(s) - dadv v_CAE(s) - dadv2 v_CAE(s)^2`` (the CAE curve itself without a
-        speed dependence; continued beyond the run's data as :func:`_reference` says).
-    dadv, dadv2 : ndarray, shape (n, n_s)
-        The CAE loading deceleration's dependence on crush speed at fixed crush,
+    load_table : ndarray, shape (3, n, n_s)
+        The loading tables ``a_rest``, ``dadv``, ``dadv2`` (properties; stacked, so that a
+        rollout step looks all three up at once):
+        ``a_rest``: CAE loading deceleration (m/s^2) of each of ``n`` conditions on the s grid at
+        zero crush speed, ``a_CAE(s) - dadv v_CAE(s) - dadv2 v_CAE(s)^2`` (the CAE curve itself
+        without a speed dependence; continued beyond the run's data as :func:`_reference` says);
+        ``dadv``, ``dadv2``: its dependence on crush speed at fixed crush,
         ``a_CAE(s, v) = a_rest + dadv v + dadv2 v^2`` (1/s and 1/m).
     a_unload : ndarray, shape (n, n_u)
         CAE unloading deceleration (m/s^2) on the u grid (0 beyond the spring-back).
@@ -136,9 +137,7 @@ class Plant:
 
     s_step: float
     u_step: float
-    a_rest: np.ndarray
-    dadv: np.ndarray
-    dadv2: np.ndarray
+    load_table: np.ndarray
     a_unload: np.ndarray
     mass: np.ndarray
     v0: np.ndarray
@@ -165,8 +164,21 @@ class Plant:
         a, v = (np.array(x) for x in zip(*(_reference(c, f, s) for c, f in zip(curves, faster))))
         b1, b2 = (0.0, 0.0) if force_rate is None else force_rate(s)
         dadv, dadv2 = (b / mass[:, None] + np.zeros_like(a) for b in (b1, b2))
-        return cls(s[1], u[1], a - dadv * v - dadv2 * v ** 2, dadv, dadv2, np.array([c.unloading(u) for c in curves]),
-                   mass, np.array([c.v0 for c in curves]), np.asarray(group, int), tuple(labels))
+        return cls(s[1], u[1], np.stack([a - dadv * v - dadv2 * v ** 2, dadv, dadv2]),
+                   np.array([c.unloading(u) for c in curves]), mass, np.array([c.v0 for c in curves]),
+                   np.asarray(group, int), tuple(labels))
+
+    @property
+    def a_rest(self) -> np.ndarray:
+        return self.load_table[0]
+
+    @property
+    def dadv(self) -> np.ndarray:
+        return self.load_table[1]
+
+    @property
+    def dadv2(self) -> np.ndarray:
+        return self.load_table[2]
 
     @property
     def s_hi(self) -> float:
@@ -176,16 +188,15 @@ class Plant:
     def subset(self, rows) -> "Plant":
         """The plant of the conditions ``rows`` (in that order, repeats allowed)."""
         rows = np.asarray(rows, int)
-        return dataclasses.replace(self, a_rest=self.a_rest[rows], dadv=self.dadv[rows], dadv2=self.dadv2[rows],
-                                   a_unload=self.a_unload[rows], mass=self.mass[rows], v0=self.v0[rows],
-                                   group=self.group[rows])
+        # take, not [:, rows]: fancy indexing on the middle axis leaves a layout a flat view cannot use
+        return dataclasses.replace(self, load_table=self.load_table.take(rows, axis=1), a_unload=self.a_unload[rows],
+                                   mass=self.mass[rows], v0=self.v0[rows], group=self.group[rows])
 
     def loading(self, s: np.ndarray, v) -> tuple[np.ndarray, np.ndarray]:
         """CAE loading deceleration (m/s^2) of every sample at its own crush ``s`` (m) and crush speed
         ``v`` (m/s), and the same at rest: two arrays of shape (n,), both >= 0."""
-        i, w = _cell(s / self.s_step, self.a_rest.shape[1])
-        rest = _take(self.a_rest, i, w)
-        speed = _take(self.dadv, i, w) * v + _take(self.dadv2, i, w) * v ** 2
+        rest, dadv, dadv2 = _take(self.load_table, *_cell(s / self.s_step, self.load_table.shape[2]))
+        speed = dadv * v + dadv2 * v ** 2
         return np.maximum(rest + speed, 0.0), np.maximum(rest, 0.0)
 
     def at_rest(self, s: np.ndarray) -> np.ndarray:
@@ -281,10 +292,12 @@ def _cell(pos: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _take(table: np.ndarray, i: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Row-wise linear interpolation of ``table`` at cells ``i`` with weights ``w``."""
-    flat = table.reshape(-1)  # 1-D take: half the cost of 2-D fancy indexing in the rollout's inner loop
-    at = np.arange(table.shape[0]) * table.shape[1] + i
-    return flat.take(at) * (1.0 - w) + flat.take(at + 1) * w
+    """Row-wise linear interpolation of ``table`` (n, n_cols), or of each of a stack of them
+    (k, n, n_cols), at cells ``i`` with weights ``w`` (n,): shape (n,) or (k, n)."""
+    n, n_cols = table.shape[-2:]
+    flat = table.reshape(*table.shape[:-2], -1)  # a flat take: half the cost of 2-D fancy indexing
+    at = np.arange(n) * n_cols + i
+    return flat.take(at, axis=-1) * (1.0 - w) + flat.take(at + 1, axis=-1) * w
 
 
 def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple[Param, ...]:
