@@ -214,6 +214,20 @@ def test_user_campaign_folds_come_from_its_conditions(tmp_path):
     assert "campaign" not in counts
 
 
+def test_larger_k_reads_the_smallest_ks_pooled_gp_in_folds_and_final_models(tmp_path):
+    """State K2 (pooling) trains and final model read the K1 model of the same test / of every test;
+    paper K2 (no pooled GP) and every K1 fit from scratch."""
+    campaign = _conditions(tmp_path / "lab", ["A1", "A2"])
+    config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)}, ks=[1, 2])
+    commands = [line for line in snakemake(tmp_path, "-n", "-p", configfile=config).stdout.splitlines()
+                if "crashfuse fit " in line]
+    pooled = {re.search(r"--out (\S+)", c).group(1): re.search(r"--pooled-from (\S+)|$", c).group(1) for c in commands}
+    assert len(pooled) == 2 * 2 * 2 + 2 and all(p is None for out, p in pooled.items() if "/K1/" in out)
+    assert pooled["results/folds/state/K2/A1/model.cfmodel"] == "results/folds/state/K1/A1/model.cfmodel"
+    assert pooled["results/folds/paper/K2/A1/model.cfmodel"] is None
+    assert pooled["results/final/state/K2/model.cfmodel"] == "results/final/state/K1/model.cfmodel"
+
+
 def test_user_campaign_with_one_test_is_refused(tmp_path):
     campaign = _conditions(tmp_path / "lab", ["A1"])
     config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)})

@@ -45,14 +45,36 @@ def method_args():
 POOLED_INPUTS = ["state"]
 
 
-def pooled_model(wildcards):
-    """The fold's model of the smallest K, whose pooled GP a larger K's `train` reuses (`crashfuse fit
-    --pooled-from`: the same fit, made once); nothing for the smallest K or a mode that does not pool."""
-    k_min = min(config["ks"])
+def _pooled_from(wildcards):
+    """The smallest K's label (`K<k>`) whose pooled GP a larger K of a pooling input mode reuses
+    (`crashfuse fit --pooled-from`: the same fit, made once); None for the smallest K or a mode that
+    does not pool."""
+    k_min = f"K{min(config['ks'])}"
     pools = wildcards.inputs in POOLED_INPUTS if METHOD["pooled"] is None else METHOD["pooled"]
-    if not pools or wildcards.model == f"K{k_min}":
-        return []
-    return fold_path("model.cfmodel").format(inputs=wildcards.inputs, model=f"K{k_min}", test=wildcards.test)
+    return None if not pools or wildcards.model == k_min else k_min
+
+
+def pooled_model(wildcards):
+    """The fold's model of the smallest K, for a larger K's `train` (nothing when it does not pool)."""
+    k_min = _pooled_from(wildcards)
+    return [] if k_min is None else fold_path("model.cfmodel").format(inputs=wildcards.inputs, model=k_min,
+                                                                      test=wildcards.test)
+
+
+def final_path(inputs="{inputs}", model="{model}"):
+    """`<results>/final/{inputs}/{model}/model.cfmodel`: a model fitted on every test."""
+    return f"{RESULTS}/final/{inputs}/{model}/model.cfmodel"
+
+
+def pooled_final_model(wildcards):
+    """The final model of the smallest K, for a larger K's `final_model` (nothing when it does not pool)."""
+    k_min = _pooled_from(wildcards)
+    return [] if k_min is None else final_path(wildcards.inputs, k_min)
+
+
+def pooled_flag(wildcards, input):
+    """`--pooled-from MODEL` when the job reads a smaller K's model."""
+    return f"--pooled-from {shlex.quote(input.pooled)}" if input.pooled else ""
 
 
 def fold_path(name):

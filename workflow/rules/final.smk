@@ -7,30 +7,32 @@ rule final_model:
     input:
         campaign=campaign_dir,
         surrogate=f"{RESULTS}/surrogate.cfmodel",
+        pooled=pooled_final_model,
     output:
-        f"{RESULTS}/final/{{inputs}}/{{model}}/model.cfmodel",
+        final_path(),
     wildcard_constraints:
         inputs="paper|state",
         model=r"K[1-9][0-9]*",
     params:
         k=lambda wildcards: wildcards.model[1:],
         method=method_args(),
+        pooled=pooled_flag,
     log:
         f"{RESULTS}/logs/final/{{inputs}}/{{model}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/final/{{inputs}}/{{model}}.tsv"
     shell:
         "crashfuse fit {input.campaign:q} --k {params.k} --inputs {wildcards.inputs} --surrogate {input.surrogate:q}"
-        " {params.method} --out {output:q} > {log:q} 2>&1"
+        " {params.method} {params.pooled} --out {output:q} > {log:q} 2>&1"
 
 
 rule final_auto:
     input:
         campaign=campaign_dir,
         surrogate=f"{RESULTS}/surrogate.cfmodel",
-        models=expand(f"{RESULTS}/final/{{inputs}}/K{{k}}/model.cfmodel", inputs=AUTO_INPUTS, k=config["ks"]),
+        models=[final_path(i, f"K{k}") for i in AUTO_INPUTS for k in config["ks"]],
     output:
-        f"{RESULTS}/final/auto/auto/model.cfmodel",
+        final_path("auto", "auto"),
     log:
         f"{RESULTS}/logs/final/auto.log",
     shell:
@@ -39,7 +41,7 @@ rule final_auto:
 
 rule predict:
     input:
-        model=f"{RESULTS}/final/{{inputs}}/{{model}}/model.cfmodel",
+        model=final_path(),
         surrogate=f"{RESULTS}/surrogate.cfmodel",
     output:
         csv=f"{RESULTS}/predictions/{{inputs}}/{{model}}/{{condition}}.csv",

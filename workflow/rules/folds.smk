@@ -30,7 +30,7 @@ rule train:
     params:
         k=lambda wildcards: wildcards.model[1:],
         method=method_args(),
-        pooled=lambda wildcards, input: f"--pooled-from {shlex.quote(input.pooled)}" if input.pooled else "",
+        pooled=pooled_flag,
     group:
         FOLD_GROUP
     log:

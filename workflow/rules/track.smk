@@ -27,7 +27,7 @@ rule track:
 # (`crashfuse-<campaign>` for auto): `mlflow models serve -m models:/<name>/<version>` answers with pulses.
 rule register:
     input:
-        model=f"{RESULTS}/final/{{inputs}}/{{model}}/model.cfmodel",
+        model=final_path(),
         surrogate=f"{RESULTS}/surrogate.cfmodel",
         predictions=lambda wildcards: [
             f for suffix in (".csv", ".json", ".png")
