@@ -104,12 +104,8 @@ CATALOGUE = {e.name: e for e in (
                Quantity("contact_damping", "N s/m", "viscous damping of the powertrain-barrier contact"))),
     Effect("unloading", "hysteretic unloading after maximum crush: the force falls over an elastic spring-back "
            "that grows with the peak force, larger in proportion at low speed", (
-               Quantity("half_force_travel_at_500kN", "m", f"crush recovered after a peak force of {F_REF / 1e3:g} "
-                        f"kN until the force has halved: how fast the structure sheds its load, what a pulse's "
-                        f"unloading shows whatever the law", headline=True),
                Quantity("springback_at_500kN", "m", f"elastic spring-back (crush recovered until the force is "
-                        f"zero) after a peak force of {F_REF / 1e3:g} kN (barely seen in a pulse once the force "
-                        f"is small)"),
+                        f"zero) after a peak force of {F_REF / 1e3:g} kN", headline=True),
                Quantity("springback_floor", "m", "spring-back after a vanishing peak force (bumper foam, elastic "
                         "beams)"),
                Quantity("springback_stiffness", "N/m", "peak force per unit of the spring-back that grows with it"),

@@ -90,19 +90,6 @@ def test_unloading_law_holds_the_exponential(case):
     np.testing.assert_allclose(got, f_m * np.exp(-u / lam), atol=0.02 * f_m)
 
 
-def test_unloading_headline_is_where_the_force_halves(case):
-    """The headline is the crush recovered until the force has halved (a stiff k: the decay length is
-    l0 at any peak, so the plant's own peak shows it)."""
-    plant = case.plant.subset([7])
-    s_max = 0.5
-    f_m = plant.mass[0] * plant.loading(np.array([s_max]), 0.0)[1][0]
-    theta = {"unloading.k": 1e10, "unloading.l0": 0.006, "unloading.n": 2.5}
-    half = headline("unloading", theta)["unloading.half_force_travel_at_500kN"]
-    fn = decel_fn(plant, ("unloading",), {k: np.array([v]) for k, v in theta.items()})
-    got = fn(_state(s_max - half, -1.0, s_max, loading=False))[0] * plant.mass[0]
-    assert got == pytest.approx(f_m / 2, rel=0.01)
-
-
 def test_powertrain_arrest_and_mount_yield(case):
     plant = case.plant.subset([7])
     label = plant.labels[plant.group[0]]

@@ -246,20 +246,3 @@ def test_committed_parameters_reproduce_nhtsa_10146():
     table = comparison(read_nhtsa(NHTSA_10146), default_params()).set_index("metric")
     assert table["within_bar"].all(), table
     assert table.loc["peak_decel_g", "rel_error"] == pytest.approx(0.0, abs=0.10)
-
-
-def test_unloading_headline_is_where_each_worlds_force_halves():
-    """The unloading headline (crush recovered from a 500 kN peak until the force has halved) is
-    computed by each world's own law: at that travel its force is half the peak."""
-    from crashfuse.catalogue import F_REF
-    from crashfuse.world import effects as first_effects, simulate as first_simulate
-    from crashfuse.world.multibody import effects as second_effects, simulate as second_simulate
-    peak = np.array([F_REF])
-    p = second_effects.REALISTIC
-    half = second_effects.headline("unloading", p, {})["unloading.half_force_travel_at_500kN"]
-    assert second_simulate._unloading(np.array([half]), peak, ("unloading",), p)[0] == pytest.approx(F_REF / 2)
-    p = first_effects.REALISTIC
-    half = first_effects.headline("unloading", p, None)["unloading.half_force_travel_at_500kN"]
-    s_max = 0.6
-    got = first_simulate._unloading(np.array([s_max - half]), s_max, peak, ("unloading",), p)[0]
-    assert got == pytest.approx(F_REF / 2)

@@ -421,9 +421,8 @@ def headline(effect: str, params: dict) -> dict:
 
     Where two parameters trade off against each other, the headline is the combination the data
     fix: ``strain_rate``: the force increase at the crush speed :data:`~crashfuse.catalogue.V_REF`,
-    ``(V_REF / d)^(1/q)``; ``unloading``: the crush recovered from a peak force
-    :data:`~crashfuse.catalogue.F_REF` until the force has halved, ``n lam (1 - 2^(-1/n))`` with
-    ``lam = l0 + F_REF / k`` (the pulse fixes how fast the force falls, not where its tail ends). Others: the effect's defining
+    ``(V_REF / d)^(1/q)``; ``unloading``: the elastic spring-back from a peak force
+    :data:`~crashfuse.catalogue.F_REF`, ``n (l0 + F_REF / k)``. Others: the effect's defining
     parameter (``powertrain``: the arrested mass of each label).
 
     Returns
@@ -435,8 +434,8 @@ def headline(effect: str, params: dict) -> dict:
     if effect == "strain_rate":
         return {key(effect, "gain_at_15mps"): (V_REF / params["strain_rate.d"]) ** (1.0 / params["strain_rate.q"])}
     if effect == "unloading":
-        n, lam = params["unloading.n"], params["unloading.l0"] + F_REF / params["unloading.k"]
-        return {key(effect, "half_force_travel_at_500kN"): n * lam * (1.0 - 2.0 ** (-1.0 / n))}
+        lam = params["unloading.l0"] + F_REF / params["unloading.k"]  # the initial decay length at F_REF
+        return {key(effect, "springback_at_500kN"): params["unloading.n"] * lam}
     if effect == "powertrain":
         return {k: v for k, v in params.items() if k.startswith("powertrain.mass[")}
     name = {"damping": "c", "mass": "extra"}[effect]

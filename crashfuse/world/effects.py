@@ -149,8 +149,7 @@ def headline(effect: str, params: dict, tests) -> dict:
     if check_effect(effect) == "strain_rate":
         return {key(effect, "gain_at_15mps"): (V_REF / p["strain_rate.d"]) ** (1.0 / p["strain_rate.q"])}
     if effect == "unloading":
-        delta = p["unloading.d0"] + F_REF / p["unloading.k"]  # spring-back: the force falls to 0 over it
-        return {key(effect, "half_force_travel_at_500kN"): delta * (1.0 - 2.0 ** (-1.0 / p["unloading.n"]))}
+        return {key(effect, "springback_at_500kN"): p["unloading.d0"] + F_REF / p["unloading.k"]}
     if effect == "powertrain":
         out = {}
         for label, part in tests.groupby("powertrain"):

@@ -125,10 +125,8 @@ def headline(effect: str, params: dict, engine_mass: dict) -> dict:
     if effect == "strain_rate":
         gain = p["strain_rate.a"] * (V_REF / p["strain_rate.v_ref"]) ** p["strain_rate.p"]
         return {key(effect, "gain_at_15mps"): gain}
-    if effect == "unloading":  # (exp(-r/delta) - exp(-S)) / (1 - exp(-S)) = 1/2 after a peak of F_REF
-        delta = p["unloading.d0"] + F_REF / p["unloading.k"]
-        half = -delta * np.log(0.5 * (1.0 + np.exp(-p["unloading.set_ratio"])))
-        return {key(effect, "half_force_travel_at_500kN"): float(half)}
+    if effect == "unloading":  # travel to zero force after a peak of F_REF
+        return {key(effect, "springback_at_500kN"): p["unloading.set_ratio"] * (p["unloading.d0"] + F_REF / p["unloading.k"])}
     if effect == "powertrain":
         return {key(effect, "mass", label): float(np.mean(m)) for label, m in engine_mass.items()}
     return {key(effect, "extra"): p["mass.m"]}
