@@ -198,15 +198,18 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
             candidates[e] = c = Candidate(e, rnd, fits, mse, reference, ev, acts_on)
             say(f"  round {rnd} +{e}: held-out rms {_rms_g(mse):.3f} g (x{c.ratio:.3f} MSE), acts on "
                 f"{' '.join(acts_on) or 'no test'}{_sole_note(case, ev)}: better on {ev.wins}, worse on {ev.losses} "
-                f"(sign test p {ev.p_value:.3g}, x{ev.affected_ratio:.3f} MSE there)")
-        eligible = [e for e in remaining if not candidates[e].at_upper_bound]
-        if not eligible:
+                f"(sign test p {ev.p_value:.3g}, permutation p {ev.permutation_p:.3g}, x{ev.affected_ratio:.3f} MSE there)")
+        eligible = sorted((e for e in remaining if not candidates[e].at_upper_bound), key=lambda e: candidates[e].ratio)
+        # The best-supported effect, not the lowest error: a candidate that lowers the error on some
+        # folds and raises it on others must not hide one that lowers it on every fold it acts on.
+        for e in eligible:
+            if not candidates[e].evidence.accepted:
+                say(f"diagnose: round {rnd} +{e} refused: {candidates[e].evidence.reason}")
+        accepted = [e for e in eligible if candidates[e].evidence.accepted]
+        if not accepted:
             break
-        best = min(eligible, key=lambda e: candidates[e].ratio)
+        best = accepted[0]
         c = candidates[best]
-        if not c.evidence.accepted:
-            say(f"diagnose: +{best} refused: {c.evidence.reason}")
-            break
         c.chosen = True
         chosen.append(best)
         current, reference, ref_pred = c.fits, c.heldout_mse, preds[best]
@@ -350,6 +353,7 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
         "evidence": {"round": c.round, "heldout_mse_ratio": c.ratio, "acts_on": list(c.acts_on),
                      "not_counted": [t for t, x in zip(case.test_ids, c.evidence.sole) if x],
                      "folds_better": c.wins, "folds_worse": c.evidence.losses, "sign_test_p": c.evidence.p_value,
+                     "permutation_p": c.evidence.permutation_p,
                      "scatter_g": c.evidence.scatter / G0, "folds_beyond_scatter": int(c.evidence.material.sum()),
                      "affected_mse_ratio": c.evidence.affected_ratio, "accepted": c.evidence.accepted,
                      "refused_because": c.evidence.reason, "at_upper_bound": c.at_upper_bound,
@@ -429,7 +433,7 @@ def markdown(js: dict) -> str:
         lines += ["**One test, no hold-out:** the evidence below is in-sample fit, not prediction.", ""]
     lines += ["## Which effect", "",
               "| effect | chosen | round | held-out MSE ratio | acts on (held-out prediction moves) | "
-              "better / worse there | sign test p | MSE ratio there | headline | reading |",
+              "better / worse there | sign / permutation test p | MSE ratio there | headline | reading |",
               "|---|---|---|---|---|---|---|---|---|---|"]
     for e in js["effects"]:
         ev = e["evidence"]
@@ -439,7 +443,8 @@ def markdown(js: dict) -> str:
         lines.append(f"| {e['effect']} | {'yes' if e['chosen'] else 'no'} | {ev['round']} | "
                      f"{ev['heldout_mse_ratio']:.3f} | {' '.join(ev['acts_on']) or 'none'} "
                      f"({len(ev['acts_on'])}/{ev['n_folds']}) | {ev['folds_better']} / {ev['folds_worse']} | "
-                     f"{ev['sign_test_p']:.3g} | {ev['affected_mse_ratio']:.3f} | {head} | {e['reading']} |")
+                     f"{ev['sign_test_p']:.3g} / {ev['permutation_p']:.3g} | {ev['affected_mse_ratio']:.3f} | {head} | "
+                     f"{e['reading']} |")
     lines += ["", "Fitted parameters (all tests; jackknife standard error over the folds):", ""]
     for e in js["effects"]:
         ps = "; ".join(f"{k} = {v['value']:.4g} {v['unit']}" + (f" (se {v['jackknife_se']:.2g})"

@@ -10,7 +10,9 @@ effect to a control's noise and CAE scatter moves it (docs/decisions.md, section
 
 - statistically: among those affected folds its held-out error must be lower often enough that a
   one-sided sign test rejects "better or worse with equal chance" at :data:`ALPHA` (at least
-  :data:`MIN_AFFECTED` folds) - or, on as few as :data:`MIN_MATERIAL`
+  :data:`MIN_AFFECTED` folds), or by enough that a one-sided sign-flip permutation test of the
+  folds' held-out rms error changes does (large gains on several folds against small losses on
+  others: an effect of two withheld that its partner masks on some folds) - or, on as few as :data:`MIN_MATERIAL`
   folds, it must be better on every one by more than the test-to-test scatter (the held-out rms
   error a typical test keeps whichever model predicts it): a fit to noise does not predict a test
   better by more than what is left on it;
@@ -38,6 +40,7 @@ MOVE = 0.05  # a fold is affected when its held-out prediction moves by more tha
 ALPHA = 0.125
 MIN_AFFECTED = 4  # the sign test needs four folds (three of three would reach ALPHA by chance 1 in 8)
 MIN_MATERIAL = 3  # the fewest affected folds, all better by more than the scatter, that are evidence
+EXACT_FLIPS = 16  # folds up to which the permutation test enumerates every sign flip (beyond: a seeded sample)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +57,9 @@ class Evidence:
         Counted affected folds whose held-out error falls / rises.
     p_value : float
         One-sided sign test of ``wins`` among ``wins + losses`` (1.0 without affected folds).
+    permutation_p : float
+        One-sided sign-flip permutation test of the counted folds' held-out rms error falls
+        (:func:`permutation_test`; 1.0 without affected folds).
     scatter : float
         Test-to-test scatter, m/s^2: the square root of the median over folds of the smaller of
         the two held-out mean squared errors.
@@ -74,6 +80,7 @@ class Evidence:
     wins: int
     losses: int
     p_value: float
+    permutation_p: float
     scatter: float
     material: np.ndarray
     ratio: float
@@ -87,6 +94,25 @@ def sign_test(wins: int, n: int) -> float:
     if n == 0:
         return 1.0
     return sum(math.comb(n, k) for k in range(wins, n + 1)) / 2.0 ** n
+
+
+def permutation_test(gains) -> float:
+    """One-sided sign-flip permutation test that paired ``gains`` (reference minus candidate, per fold)
+    are positive: the share of sign assignments whose sum is at least the observed one (1.0 for none).
+
+    Exact up to :data:`EXACT_FLIPS` folds; beyond, over 2^16 sign vectors drawn with a fixed seed
+    and the observed one (so never 0).
+    """
+    gains = np.asarray(gains, float)
+    if gains.size == 0:
+        return 1.0
+    if gains.size <= EXACT_FLIPS:
+        signs = 1 - 2 * ((np.arange(2 ** gains.size)[:, None] >> np.arange(gains.size)) & 1)
+    else:
+        drawn = np.random.default_rng(0).choice((-1, 1), size=(2 ** EXACT_FLIPS, gains.size))
+        signs = np.vstack([np.sign(gains) + (gains == 0), drawn])
+    sums = signs @ np.abs(gains)
+    return float(np.mean(sums >= gains.sum() - 1e-12 * np.abs(gains).sum()))
 
 
 def affected_folds(change_rms, test_rms, move: float = MOVE) -> np.ndarray:
@@ -154,16 +180,18 @@ def judge(reference_mse, candidate_mse, change_rms, test_rms, threshold: float, 
     wins = int((cand < ref)[counted].sum())
     losses = int((cand > ref)[counted].sum())
     p = sign_test(wins, wins + losses)
+    gain = np.sqrt(ref) - np.sqrt(cand)
+    p_perm = permutation_test(gain[counted])
     scatter = float(np.sqrt(np.median(np.minimum(ref, cand))))
-    material = counted & (np.sqrt(ref) - np.sqrt(cand) > scatter)
+    material = counted & (gain > scatter)
     ratio = float(cand.sum() / ref.sum())
     aff_ratio = float(cand[affected].sum() / ref[affected].sum()) if affected.any() else 1.0
     n = int(counted.sum())
-    if n >= min_affected and p <= alpha or n >= MIN_MATERIAL and material.sum() == n:
+    if n >= min_affected and min(p, p_perm) <= alpha or n >= MIN_MATERIAL and material.sum() == n:
         reason = _too_small(ratio, aff_ratio, threshold)
     else:
-        reason = _no_evidence(n, p, int(material.sum()), scatter, alpha, min_affected)
-    return Evidence(affected, sole, wins, losses, p, scatter, material, ratio, aff_ratio, reason == "", reason)
+        reason = _no_evidence(n, min(p, p_perm), int(material.sum()), scatter, alpha, min_affected)
+    return Evidence(affected, sole, wins, losses, p, p_perm, scatter, material, ratio, aff_ratio, reason == "", reason)
 
 
 def _no_evidence(n: int, p: float, n_material: int, scatter: float, alpha: float, min_affected: int) -> str:
@@ -173,7 +201,7 @@ def _no_evidence(n: int, p: float, n_material: int, scatter: float, alpha: float
     beyond = f"better by more than the scatter {scatter / G0:.2f} g on {n_material} of {n}"
     if n < min_affected:
         return f"acts on {n} counted folds (fewer than {min_affected} for the sign test), {beyond}"
-    return f"sign test p = {p:.3f} > {alpha}, {beyond}"
+    return f"sign and permutation tests p >= {p:.3f} > {alpha}, {beyond}"
 
 
 def _too_small(ratio: float, aff_ratio: float, threshold: float) -> str:
