@@ -199,22 +199,29 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
             say(f"  round {rnd} +{e}: held-out rms {_rms_g(mse):.3f} g (x{c.ratio:.3f} MSE), acts on "
                 f"{' '.join(acts_on) or 'no test'}{_sole_note(case, ev)}: better on {ev.wins}, worse on {ev.losses} "
                 f"(sign test p {ev.p_value:.3g}, permutation p {ev.permutation_p:.3g}, x{ev.affected_ratio:.3f} MSE there)")
-        eligible = sorted((e for e in remaining if not candidates[e].at_upper_bound), key=lambda e: candidates[e].ratio)
-        # The best-supported effect, not the lowest error: a candidate that lowers the error on some
-        # folds and raises it on others must not hide one that lowers it on every fold it acts on.
-        for e in eligible:
+        for e in remaining:
             if not candidates[e].evidence.accepted:
                 say(f"diagnose: round {rnd} +{e} refused: {candidates[e].evidence.reason}")
-        accepted = [e for e in eligible if candidates[e].evidence.accepted]
-        if not accepted:
+        best = best_supported(candidates, remaining)
+        if best is None:
             break
-        best = accepted[0]
         c = candidates[best]
         c.chosen = True
         chosen.append(best)
         current, reference, ref_pred = c.fits, c.heldout_mse, preds[best]
     say(f"diagnose: verdict {chosen or 'none'}")
     return chosen, candidates, current
+
+
+def best_supported(candidates: dict, names) -> str | None:
+    """The effect of ``names`` a round adds: the lowest held-out error among the candidates whose
+    evidence is accepted and whose fit is not at a physical bound; None when there is none.
+
+    Not simply the lowest error: a candidate that lowers the error on some folds and raises it on
+    others (two effects withheld, one fitted alone) must not hide one that lowers it consistently.
+    """
+    supported = [e for e in names if candidates[e].evidence.accepted and not candidates[e].at_upper_bound]
+    return min(supported, key=lambda e: candidates[e].ratio, default=None)
 
 
 def _sole_note(case: TestCase, ev: Evidence) -> str:
