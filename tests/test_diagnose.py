@@ -190,6 +190,7 @@ def test_diagnosis_files(damping_world, tmp_path):
         assert (out / "figures" / name).stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_the_shrink_tables_gmm_gpr_rows_are_the_same_on_any_number_of_workers(damping_world):
     """The GMM-GPR alone and on the residual of CAE + effects, leave-one-test-out (the slow part of a
     diagnosis): a row per test and window for each, the same numbers on one process and on two (to the
@@ -229,6 +230,7 @@ def test_bad_input(control_world, tmp_path):
     assert main(["diagnose", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
 
 
+@pytest.mark.slow
 def test_small_validation_matrix(tmp_path):
     """The harness end to end on one effect and the control (the full matrix is a workflow target)."""
     from crashfuse.world.validation import validate
@@ -242,6 +244,7 @@ def test_small_validation_matrix(tmp_path):
     assert (tmp_path / "validation.md").read_text().count("| damping |") >= 1
 
 
+@pytest.mark.slow
 def test_validation_on_the_second_world(tmp_path):
     """The harness on the second world (laws of other forms): its engine reaches the barrier in the
     35 mph tests only, and the verdict names it; its exponential unloading with a residual set is
@@ -273,6 +276,7 @@ def test_validation_pairs_in_the_world_that_withholds_several():
                                      "mass+unloading", "none"]
 
 
+@pytest.mark.slow
 def test_paper_campaign_verdict():
     """On the paper preset the verdict is strain_rate and powertrain, nothing else."""
     # Three companions never stop inside the record: their unloading comes from the surrogate, which

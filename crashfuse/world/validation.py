@@ -6,8 +6,8 @@ campaign from the world whose tests carry the effect and whose CAE runs do not; 
 the control empty, recover the effect's headline quantities (:mod:`crashfuse.catalogue`) within
 :data:`TOLERANCE` and shrink the gap. With ``pairs`` (a world that withholds several effects at
 once) every pair of the effects is withheld together as well: the verdict must name both
-(``all_named``), in either order, and no third. The answer key comes from the campaign's ``world.json``: the
-world's laws compute the same headline quantities from it (:func:`true_headline`).
+(``all_named``), in either order, and no third. The answer key comes from the campaign's
+``world.json``: the world's laws compute the same headline quantities from it (:func:`true_headline`).
 """
 
 from __future__ import annotations
@@ -41,9 +41,8 @@ WORLDS = {"first": (first_presets.resolve, first_generate.generate),
 PAIR_SEP = "+"  # joins the effects of a campaign that withholds two
 SEVERAL = ("multibody",)  # worlds that withhold several effects at once (the first: one at a time)
 COLUMNS = ("world", "withheld", "strength", "seed", "verdict", "first", "first_correct", "all_named", "spurious",
-           "parameter", "true",
-           "fitted", "fitted_se", "rel_error", "within_tolerance", "heldout_mse_ratio", "iso_0_60_cae",
-           "iso_0_60_effects", "shrinks", "seconds")
+           "parameter", "true", "fitted", "fitted_se", "rel_error", "within_tolerance", "heldout_mse_ratio",
+           "iso_0_60_cae", "iso_0_60_effects", "shrinks", "seconds")
 
 
 def true_headline(world: dict, effect: str, campaign) -> dict:
@@ -110,8 +109,9 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
 def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,), candidates=EFFECTS,
              progress=print, n_cae: int = N_CAE, worlds=("first",), pairs: bool = False) -> pd.DataFrame:
     """The validation matrix: ``worlds`` x (``effects`` withheld + control, and with ``pairs`` every
-    pair of ``effects`` withheld together where the world can: :data:`SEVERAL`) x strengths x seeds, each diagnosed with ``candidates`` on
-    campaigns of ``n_cae`` CAE runs; writes validation.csv and validation.md into ``out``.
+    pair of ``effects`` withheld together where the world can: :data:`SEVERAL`) x strengths x seeds,
+    each diagnosed with ``candidates`` on campaigns of ``n_cae`` CAE runs; writes validation.csv and
+    validation.md into ``out``.
 
     Raises
     ------
