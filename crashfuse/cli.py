@@ -119,14 +119,13 @@ def _world_realism(args) -> int:
 
 
 def _world_validate(args) -> int:
-    from crashfuse.world.validation import N_CAE, validate
+    from crashfuse.world.validation import N_CAE, exactly_right, validate
 
     table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds,
                      n_cae=args.n_cae or N_CAE, worlds=args.worlds, pairs=args.pairs)
     runs = table.drop_duplicates(["world", "withheld", "strength", "seed"])
-    exact = runs["all_named"] & runs["spurious"].fillna("").eq("")
     print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with a right first effect, "
-          f"{int(exact.sum())} with exactly the withheld effects -> {args.out}")
+          f"{int(exactly_right(runs).sum())} with exactly the withheld effects -> {args.out}")
     return 0
 
 

@@ -33,7 +33,7 @@ from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect
 from crashfuse.gp.threads import one_blas_thread
 from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, predict,
                                          test_case, warm_start)
-from crashfuse.method.laws import headline
+from crashfuse.method.laws import decay_length, headline
 from crashfuse.errors import InputError
 from crashfuse.diagnosis.evidence import ALPHA, MOVE, Evidence, judge
 from crashfuse.diagnosis.gap import locate_gap
@@ -198,7 +198,8 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
             candidates[e] = c = Candidate(e, rnd, fits, mse, reference, ev, acts_on)
             say(f"  round {rnd} +{e}: held-out rms {_rms_g(mse):.3f} g (x{c.ratio:.3f} MSE), acts on "
                 f"{' '.join(acts_on) or 'no test'}{_sole_note(case, ev)}: better on {ev.wins}, worse on {ev.losses} "
-                f"(sign test p {ev.p_value:.3g}, permutation p {ev.permutation_p:.3g}, x{ev.affected_ratio:.3f} MSE there)")
+                f"(sign test p {ev.p_value:.3g}, permutation p {ev.permutation_p:.3g}, "
+                f"x{ev.affected_ratio:.3f} MSE there)")
         for e in remaining:
             if not candidates[e].evidence.accepted:
                 say(f"diagnose: round {rnd} +{e} refused: {candidates[e].evidence.reason}")
@@ -397,10 +398,10 @@ def reading(effect: str, p: dict, case: TestCase) -> str:
     if effect == "mass":
         return f"the decelerating mass is about {p['mass.extra']:.0f} kg more than the nominal test weight"
     if effect == "unloading":
-        lam = p["unloading.l0"] + F_REF / p["unloading.k"]
+        lam = decay_length(p, F_REF)
         return (f"after maximum crush the force falls along a power law (exponent {p['unloading.n']:.2f}): from "
-                f"a {F_REF / 1e3:.0f} kN peak, at first as fast as an exponential decay over {1e3 * lam:.1f} mm, reaching "
-                f"zero after {1e3 * p['unloading.n'] * lam:.0f} mm")
+                f"a {F_REF / 1e3:.0f} kN peak, at first as fast as an exponential decay over {1e3 * lam:.1f} mm, "
+                f"reaching zero after {1e3 * p['unloading.n'] * lam:.0f} mm")
     parts = [f"{p[f'powertrain.mass[{lab}]']:.0f} kg ({lab}) after {1e3 * p[f'powertrain.gap[{lab}]']:.0f} mm"
              for lab in case.plant.labels]
     return (f"a powertrain mass is stopped by the barrier once the crush closes its gap: {'; '.join(parts)}; "

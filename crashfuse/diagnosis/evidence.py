@@ -12,8 +12,8 @@ effect to a control's noise and CAE scatter moves it (docs/decisions.md, section
   one-sided sign test rejects "better or worse with equal chance" at :data:`ALPHA` (at least
   :data:`MIN_AFFECTED` folds), or by enough that a one-sided sign-flip permutation test of the
   folds' held-out rms error changes does (large gains on several folds against small losses on
-  others: an effect of two withheld that its partner masks on some folds) - or, on as few as :data:`MIN_MATERIAL`
-  folds, it must be better on every one by more than the test-to-test scatter (the held-out rms
+  others: an effect of two withheld that its partner masks on some folds) - or, on as few as
+  :data:`MIN_MATERIAL` folds, it must be better on every one by more than the test-to-test scatter (the held-out rms
   error a typical test keeps whichever model predicts it): a fit to noise does not predict a test
   better by more than what is left on it;
 - practically: the held-out mean squared error must fall by at least ``threshold`` (relative) both

@@ -361,8 +361,7 @@ def decel_fn(plant: Plant, effects, theta: dict):
         f_max = plant.mass * plant.at_rest(st.s_max)  # static crush force at maximum crush (N)
         if "unloading" in effects:
             n = theta["unloading.n"]
-            frac = np.clip(1.0 - st.u / (n * (theta["unloading.l0"] + f_max / theta["unloading.k"])), 0.0, 1.0)
-            return f_max * frac ** n
+            return f_max * np.clip(1.0 - st.u / (n * decay_length(theta, f_max)), 0.0, 1.0) ** n
         ratio = np.maximum(f_max / (plant.mass * unl0), 1e-6)
         return f_max * plant.unloading(st.u / ratio) / unl0
 
@@ -388,6 +387,12 @@ def decel_fn(plant: Plant, effects, theta: dict):
             mass = mass - np.where(struck, m_p, 0.0)
         return force / mass
     return decel
+
+
+def decay_length(params: dict, peak_force):
+    """The ``unloading`` law's initial decay length ``l0 + F_m / k`` in m after a peak force ``F_m`` (N):
+    the crush over which the force would reach zero at the rate it starts to fall."""
+    return params["unloading.l0"] + peak_force / params["unloading.k"]
 
 
 def _powertrain_arrays(plant: Plant, theta: dict):
@@ -434,8 +439,7 @@ def headline(effect: str, params: dict) -> dict:
     if effect == "strain_rate":
         return {key(effect, "gain_at_15mps"): (V_REF / params["strain_rate.d"]) ** (1.0 / params["strain_rate.q"])}
     if effect == "unloading":
-        lam = params["unloading.l0"] + F_REF / params["unloading.k"]  # the initial decay length at F_REF
-        return {key(effect, "springback_at_500kN"): params["unloading.n"] * lam}
+        return {key(effect, "springback_at_500kN"): params["unloading.n"] * decay_length(params, F_REF)}
     if effect == "powertrain":
         return {k: v for k, v in params.items() if k.startswith("powertrain.mass[")}
     name = {"damping": "c", "mass": "extra"}[effect]

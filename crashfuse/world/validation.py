@@ -29,6 +29,7 @@ from crashfuse.io.campaign import read_campaign
 from crashfuse.world import effects as world_effects
 from crashfuse.world import generate as first_generate, presets as first_presets
 from crashfuse.world.generate import WORLD_JSON
+from crashfuse.world.method_validation import PAIR_SEP, WORLD_WITHHOLDS_SEVERAL
 from crashfuse.world.multibody import effects as second_effects, generate as second_generate, presets as second_presets
 
 TOLERANCE = {"realistic": 0.25, "subtle": 0.50}  # relative error allowed on a headline quantity
@@ -38,8 +39,6 @@ TOLERANCE = {"realistic": 0.25, "subtle": 0.50}  # relative error allowed on a h
 N_CAE = 300
 WORLDS = {"first": (first_presets.resolve, first_generate.generate),
           "multibody": (second_presets.resolve, second_generate.generate)}
-PAIR_SEP = "+"  # joins the effects of a campaign that withholds two
-SEVERAL = ("multibody",)  # worlds that withhold several effects at once (the first: one at a time)
 COLUMNS = ("world", "withheld", "strength", "seed", "verdict", "first", "first_correct", "all_named", "spurious",
            "parameter", "true", "fitted", "fitted_se", "rel_error", "within_tolerance", "heldout_mse_ratio",
            "iso_0_60_cae", "iso_0_60_effects", "shrinks", "seconds")
@@ -109,7 +108,7 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
 def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,), candidates=EFFECTS,
              progress=print, n_cae: int = N_CAE, worlds=("first",), pairs: bool = False) -> pd.DataFrame:
     """The validation matrix: ``worlds`` x (``effects`` withheld + control, and with ``pairs`` every
-    pair of ``effects`` withheld together where the world can: :data:`SEVERAL`) x strengths x seeds,
+    pair of ``effects`` withheld together where the world can) x strengths x seeds,
     each diagnosed with ``candidates`` on campaigns of ``n_cae`` CAE runs; writes validation.csv and
     validation.md into ``out``.
 
@@ -145,10 +144,15 @@ def _campaigns(worlds, effects, strengths, seeds, pairs=False):
     both = [PAIR_SEP.join(pair) for pair in itertools.combinations(effects, 2)] if pairs else []
     for world in worlds:
         for strength in strengths:
-            for withheld in (*effects, *(both if world in SEVERAL else ()), "none"):
+            for withheld in (*effects, *(both if WORLD_WITHHOLDS_SEVERAL[world] else ()), "none"):
                 for seed in seeds:
                     if withheld != "none" or strength == strengths[0]:
                         yield world, strength, withheld, seed
+
+
+def exactly_right(runs: pd.DataFrame) -> pd.Series:
+    """Per campaign row: the verdict names every withheld effect and nothing else."""
+    return runs["all_named"] & runs["spurious"].fillna("").eq("")
 
 
 def validation_markdown(table: pd.DataFrame) -> str:
@@ -156,7 +160,7 @@ def validation_markdown(table: pd.DataFrame) -> str:
     lines = ["# Withheld-effect validation", "", "Rows: effect withheld from the CAE; columns: first effect chosen.", ""]
     for world, part in table.drop_duplicates(["world", "withheld", "strength", "seed"]).groupby("world", sort=False):
         confusion = pd.crosstab(part["withheld"], part["first"])
-        exact = part["all_named"] & part["spurious"].fillna("").eq("")
+        exact = exactly_right(part)
         lines += [f"World `{world}`: the verdict is exactly the withheld effects in {int(exact.sum())} of {len(part)} "
                   f"campaigns; the first effect is one of them in {int(part['first_correct'].sum())}.", "",
                   confusion.to_markdown() if hasattr(confusion, "to_markdown") else confusion.to_string(), ""]
