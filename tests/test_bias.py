@@ -689,18 +689,31 @@ def test_onset_correction_learns_the_time_locked_error_of_the_base_model(onset_m
     assert onset_model.onset_gp_.n_features_in_ == 1 and onset_model.onset_gp_.trend == "zero"
 
 
-def test_onset_correction_fades_out_and_leaves_bands_to_the_base_model(onset_model):
+def test_onset_correction_fades_out_and_leaves_the_latent_band_to_the_base_model(onset_model):
     X, _, _ = _onset_data(speeds=(9.0,))
     late = _time(X) >= 1.3
     mean, std = onset_model.predict(X, return_std=True)
     base_mean, base_std = onset_model.base_.predict(X, return_std=True)
     np.testing.assert_array_equal(mean[late], base_mean[late])
     np.testing.assert_array_equal(std, base_std)
-    np.testing.assert_array_equal(onset_model.scatter_std(X), onset_model.base_.scatter_std(X))
     draws = onset_model.sample_functions(X, 4, random_state=3)
     np.testing.assert_allclose(draws, onset_model.base_.sample_functions(X, 4, random_state=3)
                                + onset_model.correction(X), rtol=1e-12)
     assert onset_model.gps_ is onset_model.base_.gps_
+
+
+def test_onset_correction_widens_the_test_scatter_by_its_own_spread_while_it_acts(onset_model):
+    """A new test's held-out error lies about the correction as the training tests' residuals lie about the
+    correction GP: its predictive std of a new residual (noise included), faded as the correction, is
+    added in quadrature to the base model's scatter; past the window the scatter is the base model's."""
+    X, _, _ = _onset_data(speeds=(9.0,))
+    t = _time(X)
+    base = onset_model.base_.scatter_std(X)
+    sd = onset_model.onset_gp_.predict(t[:, None], return_std=True, include_noise=True)[1]
+    fade = np.clip(np.cos(0.5 * np.pi * np.clip((t - 1.0) / 0.3, 0.0, 1.0)) ** 2, 0.0, 1.0)
+    np.testing.assert_allclose(onset_model.scatter_std(X), np.sqrt(base**2 + (fade * sd) ** 2), rtol=1e-12)
+    assert np.all(onset_model.scatter_std(X)[t < 1.0] > base[t < 1.0]) and np.all(sd > 0)
+    np.testing.assert_array_equal(onset_model.scatter_std(X)[t >= 1.3], base[t >= 1.3])
 
 
 def test_onset_gp_fitted_on_a_share_of_many_early_rows_corrects_as_the_one_fitted_on_all(monkeypatch):

@@ -31,9 +31,9 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
     them between tests out of phase. The base model's leave-one-test-out residuals expose that
     error; a zero-mean GP over the nominal time since contact learns it from the rows earlier
     than ``window[1]`` and its mean is added to the base model's, whole up to ``window[0]`` and
-    faded out by ``window[1]`` (cos^2). The correction is a point estimate: bands, draws'
-    spread and scatter stay the base model's (its band is calibrated on the same held-out
-    residuals).
+    faded out by ``window[1]`` (cos^2). The correction is a point estimate: the latent band and
+    the draws' spread stay the base model's; the test-to-test scatter adds, while the correction
+    acts, how far the training tests' held-out errors lie from it (:meth:`scatter_std`).
 
     Parameters
     ----------
@@ -178,8 +178,19 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         return self.base_.sample_functions(X, n_samples, random_state) + self.correction(X)
 
     def scatter_std(self, X):
-        """The base model's test-to-test scatter std, shape (m,)."""
-        return self.base_.scatter_std(X)
+        """Test-to-test scatter std (y units), shape (m,): the base model's, and early in the pulse, in
+        quadrature, how far a new test's held-out error lies from the correction - the correction GP's
+        predictive std of a new residual (its noise included), faded as the correction."""
+        base = self.base_.scatter_std(X)
+        if self.onset_gp_ is None:
+            return base
+        t = np.asarray(self.time(check_array(X)), dtype=float)
+        fade = self._fade(t)
+        sd = np.zeros(len(t))
+        on = fade > 0
+        if on.any():
+            sd[on] = fade[on] * self.onset_gp_.predict(t[on, None], return_std=True, include_noise=True)[1]
+        return np.sqrt(base**2 + sd**2)
 
     def predict_responsibilities(self, X):
         """The base model's mixture responsibilities, shape (m, len(gps_))."""
