@@ -93,7 +93,9 @@ class FittedModel:
         ``condition``: (lo, hi) arrays of [v0, w_f, w_r] over the training tests; ``x_max`` per
         branch: the largest branch coordinate in the bias data (m); ``cae_condition``: (lo, hi) of
         the CAE runs' conditions (the surrogate's range); ``state`` (``state`` inputs only): per
-        branch, the joint (x, v) coverage of the bias data that flags a rollout leaving it.
+        branch, the joint (x, v) coverage of the bias data that flags a rollout leaving it;
+        ``bias_rms`` per branch: the rms of the training tests' bias in m/s^2 (the learnt target
+        times its scale), which bounds the band (:meth:`bias_spread`).
     companions : list of (Condition, Pulse)
         Every test's condition and its companion CAE run.
     categories : dict of str to list of str
@@ -185,6 +187,11 @@ class FittedModel:
     def x_max(self, branch: str) -> float:
         """Largest branch coordinate (m) in the bias data of ``branch`` (0 without data)."""
         return float(self.ranges["x_max"].get(branch, 0.0))
+
+    def bias_spread(self, branch: str) -> float:
+        """Rms of the training tests' bias on ``branch`` (m/s^2): the most a new test's bias can be
+        expected to deviate, so the band's std never exceeds it (``inf`` for a file fitted before it)."""
+        return float(self.ranges.get("bias_rms", {}).get(branch, np.inf))
 
     def cae_curve(self, cond: Condition) -> CAECurve:
         """The CAE curve at ``cond``: the companion run where ``use_companion`` and one matches, else the
@@ -467,10 +474,15 @@ def _ranges(campaign: Campaign, train: list, data: BiasData) -> dict:
     tr, cae = conds.loc[train, cols].to_numpy(float), conds.loc[campaign.cae, cols].to_numpy(float)
     x_max = {b: float(data.branch(b).X[:, 0].max()) if data.branch(b).y.size else 0.0 for b in BRANCHES}
     out = {"condition": (tr.min(axis=0), tr.max(axis=0)), "cae_condition": (cae.min(axis=0), cae.max(axis=0)),
-           "x_max": x_max}
+           "x_max": x_max, "bias_rms": {b: _bias_rms(data.branch(b)) for b in BRANCHES}}
     if data.inputs == "state":
         out["state"] = {b: _state_table(data.branch(b)) if data.branch(b).y.size else None for b in BRANCHES}
     return out
+
+
+def _bias_rms(d) -> float:
+    """Rms of one branch's bias data in m/s^2 (0 without data)."""
+    return float(np.sqrt(np.mean((d.y * d.scale) ** 2))) if d.y.size else 0.0
 
 
 def _state_table(d) -> tuple:
