@@ -119,12 +119,16 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         X = check_array(X)
         if self.onset_gp_ is None:
             return np.zeros(len(X))
+        return self._faded(X, self.onset_gp_.predict)
+
+    def _faded(self, X, of_time):
+        """``fade(t) * of_time(t)`` at ``X``, shape (m,); ``of_time`` maps times (k, 1) in s to (k,)."""
         t = np.asarray(self.time(X), dtype=float)
         fade = self._fade(t)
-        out = np.zeros(len(X))
+        out = np.zeros(len(t))
         on = fade > 0
         if on.any():
-            out[on] = fade[on] * self.onset_gp_.predict(t[on, None])
+            out[on] = fade[on] * of_time(t[on, None])
         return out
 
     def _fade(self, t):
@@ -184,12 +188,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         base = self.base_.scatter_std(X)
         if self.onset_gp_ is None:
             return base
-        t = np.asarray(self.time(check_array(X)), dtype=float)
-        fade = self._fade(t)
-        sd = np.zeros(len(t))
-        on = fade > 0
-        if on.any():
-            sd[on] = fade[on] * self.onset_gp_.predict(t[on, None], return_std=True, include_noise=True)[1]
+        sd = self._faded(check_array(X), lambda t: self.onset_gp_.predict(t, return_std=True, include_noise=True)[1])
         return np.sqrt(base**2 + sd**2)
 
     def predict_responsibilities(self, X):
