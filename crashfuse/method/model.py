@@ -189,8 +189,8 @@ class FittedModel:
         return float(self.ranges["x_max"].get(branch, 0.0))
 
     def bias_spread(self, branch: str) -> float:
-        """Rms of the training tests' bias on ``branch`` (m/s^2): the most a new test's bias can be
-        expected to deviate, so the band's std never exceeds it (``inf`` for a file fitted before it)."""
+        """Rms of the training tests' bias on ``branch`` (m/s^2), the bound on a relative target's band
+        (:func:`crashfuse.method.rollout.predict`); ``inf`` for a file fitted before it was stored."""
         return float(self.ranges.get("bias_rms", {}).get(branch, np.inf))
 
     def cae_curve(self, cond: Condition) -> CAECurve:
