@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from crashfuse import InputError, Pulse
-from crashfuse.signals.domain import displacement_branches, kinematics, position_step, velocity_step
+from crashfuse.signals.domain import displacement_branches, kinematics, position_step, rebound_work, velocity_step
 from crashfuse.units import G0
 
 DT = 1e-4
@@ -135,3 +135,14 @@ def test_noise_never_breaks_monotonic_branches():
     br = displacement_branches(_pulse(a + rng.normal(0, 20 * G0, t.size), t, 12.0))
     assert np.all(np.diff(br.loading.x) > 0) and np.all(np.diff(br.unloading.x) > 0)
     assert br.loading.x[-1] == br.s_max
+
+
+def test_rebound_work_is_the_spring_back_work_up_to_where_the_deceleration_stops_pushing():
+    """A linear spring-back 10 g -> 0 over 20 mm returns 0.5 * 10 g * 0.02 m; the -2 g after it (the car
+    leaving, its structure ringing) does not count; a branch cut before separation says so."""
+    u = np.linspace(0.0, 0.04, 401)
+    a = np.where(u <= 0.02, 10 * G0 * (1 - u / 0.02), -2 * G0)
+    work, peak = rebound_work(u, np.stack([a, 0.5 * a]))
+    np.testing.assert_allclose(work, [0.1 * G0, 0.05 * G0], rtol=1e-9)
+    assert list(peak) == [200, 200]
+    assert rebound_work(u[:100], a[:100])[1] == 99  # still pushing at the end of the record

@@ -34,7 +34,8 @@ from crashfuse.method.config import MethodConfig
 from crashfuse.method.effect_fit import faster_curve
 from crashfuse.method.hybrid import AUTO, PhysicsFirst, fit_physics
 from crashfuse.method.projection import (BRANCHES, BiasData, bias_data, bias_inputs, cae_curve, column_velocity,
-                                         nominal_time)
+                                         nominal_time, training_test)
+from crashfuse.signals.domain import displacement_branches, rebound_work
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
@@ -192,6 +193,14 @@ class FittedModel:
         """Rms of the training tests' bias on ``branch`` (m/s^2), the bound on a relative target's band
         (:func:`crashfuse.method.rollout.predict`); ``inf`` for a file fitted before it was stored."""
         return float(self.ranges.get("bias_rms", {}).get(branch, np.inf))
+
+    def rebound_range(self) -> tuple[float, float]:
+        """(lo, hi): the rebound speed over the CAE's that the training tests span, 1 included; (0, inf)
+        without tests reaching separation in their record, or for a file fitted before it was stored."""
+        ratios = self.ranges.get("rebound_ratio")
+        if not ratios:
+            return 0.0, np.inf
+        return min(1.0, min(ratios)), max(1.0, max(ratios))
 
     def cae_curve(self, cond: Condition) -> CAECurve:
         """The CAE curve at ``cond``: the companion run where ``use_companion`` and one matches, else the
@@ -393,7 +402,8 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
     if physics is not None and (physics.tests != sorted(train) or config.effects not in (AUTO, physics.effects)):
         raise ValueError(f"physics fitted on {physics.tests} with {physics.effects}, this fit trains on "
                          f"{sorted(train)} with {config.effects}")
-    data = training_data(campaign, train, config, surrogate, physics)
+    curves = training_curves(campaign, train, surrogate, physics)
+    data = training_data(campaign, train, config, surrogate, physics, curves)
     seeds = np.random.RandomState(config.random_state).randint(SEED_MAX, size=len(BRANCHES))
     pooled = pooled or {}
     bias = {b: _fit_branch(data, b, config, int(seed), campaign.root, pooled.get(b))
@@ -402,14 +412,14 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         surrogate=surrogate, bias_=bias, config=config, holdout=sorted(held),
         columns={b: data.branch(b).columns for b in BRANCHES}, training_tests=train,
         groups={b: sorted(set(data.branch(b).groups)) for b in BRANCHES}, missing=dict(data.missing),
-        ranges=_ranges(campaign, train, data), companions=_companions(campaign),
+        ranges=_ranges(campaign, train, data, curves), companions=_companions(campaign),
         categories=dict(data.categories), campaign_hash=campaign.content_hash(), physics=physics,
         fit_seconds=time.perf_counter() - t0, fit_started=started,
     )
 
 
 def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CAESurrogate,
-                  physics: PhysicsFirst | None = None) -> BiasData:
+                  physics: PhysicsFirst | None = None, curves: dict | None = None) -> BiasData:
     """The bias data of ``tests`` as a fit with ``config`` learns them (each test with its companion run,
     plus the hybrid's effect laws where ``physics`` is given).
 
@@ -424,21 +434,32 @@ def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CA
         The CAE curve of a test without a companion run.
     physics : PhysicsFirst, optional
         Effect laws added to every test's CAE curve (:meth:`FittedModel.cae_curve` does the same).
+    curves : dict, optional
+        :func:`training_curves` of these tests, when already at hand.
 
     Returns
     -------
     BiasData
     """
-    curves = None
-    if physics is not None and physics.effects:
-        curves = {t: physics.curve(cae_curve(campaign, p, surrogate), p.mass, p.meta.get("powertrain"),
-                                   faster_curve(surrogate, p.v0, p.front_weight, p.rear_weight,
-                                                p.meta.get("powertrain"), p.meta.get("drive")),
-                                   p.front_weight, p.rear_weight)
-                  for t, p in ((t, campaign.pulses[t]) for t in tests)}
     return bias_data(campaign, tests, config.inputs, config.extra_inputs, config.n_grid, surrogate=surrogate,
-                     use_companion=True, cae_curves=curves, target=config.target, weights=config.weights,
-                     velocity=config.velocity)
+                     use_companion=True, cae_curves=curves or training_curves(campaign, tests, surrogate, physics),
+                     target=config.target, weights=config.weights, velocity=config.velocity)
+
+
+def training_curves(campaign: Campaign, tests, surrogate: CAESurrogate, physics: PhysicsFirst | None = None) -> dict:
+    """The CAE curve each test's bias is measured against, by run_id: its companion run (else the
+    surrogate's curve at its condition), plus the hybrid's effect laws where ``physics`` is given."""
+    curves = {}
+    for t in tests:
+        p = training_test(campaign, t)
+        curve = cae_curve(campaign, p, surrogate)
+        if physics is not None and physics.effects:
+            curve = physics.curve(curve, p.mass, p.meta.get("powertrain"),
+                                  faster_curve(surrogate, p.v0, p.front_weight, p.rear_weight,
+                                               p.meta.get("powertrain"), p.meta.get("drive")),
+                                  p.front_weight, p.rear_weight)
+        curves[t] = curve
+    return curves
 
 
 def holdout_tests(campaign: Campaign, holdout) -> set[str]:
@@ -468,15 +489,30 @@ def _fit_branch(data: BiasData, branch: str, config: MethodConfig, seed: int, ro
                          root, "k") from None
 
 
-def _ranges(campaign: Campaign, train: list, data: BiasData) -> dict:
+def _ranges(campaign: Campaign, train: list, data: BiasData, curves: dict) -> dict:
     conds = campaign.conditions.set_index("run_id")
     cols = ["v0_mps", "front_weight_kg", "rear_weight_kg"]
     tr, cae = conds.loc[train, cols].to_numpy(float), conds.loc[campaign.cae, cols].to_numpy(float)
     x_max = {b: float(data.branch(b).X[:, 0].max()) if data.branch(b).y.size else 0.0 for b in BRANCHES}
     out = {"condition": (tr.min(axis=0), tr.max(axis=0)), "cae_condition": (cae.min(axis=0), cae.max(axis=0)),
-           "x_max": x_max, "bias_rms": {b: _bias_rms(data.branch(b)) for b in BRANCHES}}
+           "x_max": x_max, "bias_rms": {b: _bias_rms(data.branch(b)) for b in BRANCHES},
+           "rebound_ratio": _rebound_ratios(campaign, curves)}
     if data.inputs == "state":
         out["state"] = {b: _state_table(data.branch(b)) if data.branch(b).y.size else None for b in BRANCHES}
+    return out
+
+
+def _rebound_ratios(campaign: Campaign, curves: dict) -> list:
+    """Each training test's rebound speed over its CAE curve's (tests whose record reaches separation)."""
+    out = []
+    for test_id, curve in curves.items():
+        unloading = displacement_branches(campaign.pulses[test_id]).unloading
+        if unloading is None or curve.u is None or unloading.x.size < 2:
+            continue
+        work, peak = rebound_work(unloading.x, unloading.decel)
+        cae_work = rebound_work(curve.u, curve.a_unloading)[0]
+        if peak < unloading.x.size - 1 and cae_work > 0:
+            out.append(float(np.sqrt(work / cae_work)))
     return out
 
 

@@ -232,7 +232,7 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
     parts = {b: [] for b in BRANCHES}
     missing = {}
     for test_id in test_ids:
-        test = _test_pulse(campaign, test_id)
+        test = training_test(campaign, test_id)
         curve = cae_curve(campaign, test, surrogate, use_companion, cae_curves or {})
         for name, rows in _test_rows(test, curve, n_grid, missing, target).items():
             x, v, bias, scale = rows
@@ -350,7 +350,8 @@ def _categories(campaign: Campaign) -> dict[str, list[str]]:
     return {c: sorted({str(v) for v in campaign.conditions[c]}) for c in CATEGORIES}
 
 
-def _test_pulse(campaign: Campaign, test_id: str) -> Pulse:
+def training_test(campaign: Campaign, test_id: str) -> Pulse:
+    """The pulse of test ``test_id``; InputError if the campaign has no such run or it is not a test."""
     pulse = campaign.pulses.get(test_id)
     if pulse is None:
         raise InputError(f"no run {test_id!r} in the campaign", campaign.root, "test_ids")

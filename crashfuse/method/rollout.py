@@ -44,6 +44,7 @@ import pandas as pd
 from scipy.stats import norm
 
 from crashfuse.signals.dynamics import Trajectory, rollout
+from crashfuse.signals.domain import rebound_work
 from crashfuse.errors import InputError
 from crashfuse.signals.metrics import REBOUND_WINDOW, occupant_load_criterion
 from crashfuse.method.projection import BRANCHES, bias_scale
@@ -151,10 +152,21 @@ class _BranchBias:
     v_grid : ndarray, shape (nv,)
     dev : ndarray, shape (m, N_X) or None
         Per-sample deviation of the drawn function from the mean along the grid.
+    gain : ndarray, shape (m,) or None
+        Per-sample factor on the whole bias (the rebound bound, :func:`_rebound_bounded`); None: 1.
     """
 
-    def __init__(self, x_hi, mean_table, v_grid, dev=None):
-        self.x_hi, self.mean_table, self.v_grid, self.dev = x_hi, mean_table, v_grid, dev
+    def __init__(self, x_hi, mean_table, v_grid, dev=None, gain=None):
+        self.x_hi, self.mean_table, self.v_grid, self.dev, self.gain = x_hi, mean_table, v_grid, dev, gain
+
+    @property
+    def n_functions(self) -> int:
+        """Functions held: the samples' draws, or 1 (the mean)."""
+        return 1 if self.dev is None else self.dev.shape[0]
+
+    def with_gain(self, gain):
+        """The same functions, each multiplied by its ``gain`` (shape (n_functions,))."""
+        return _BranchBias(self.x_hi, self.mean_table, self.v_grid, self.dev, gain)
 
     def __call__(self, x, v, rows=None):
         """Bias in m/s^2 at (x, v), shape (k,), for the samples ``rows`` (default all, k = m)."""
@@ -169,6 +181,8 @@ class _BranchBias:
         if self.dev is not None:
             rows = np.arange(self.dev.shape[0]) if rows is None else rows
             out = out + self.dev[rows, ix] * (1 - wx) + self.dev[rows, ix + 1] * wx
+        if self.gain is not None:
+            out = out * (self.gain[0] if self.dev is None else self.gain[rows])
         return out
 
 
@@ -290,7 +304,12 @@ def _prepare(model, cond, n_samples: int, rng, dt: float, n_steps: int):
     x_hi = _grid_ends(model, raw, cae)
     means = {b: _mean_bias(model, b, cond, x_hi[b]) for b in BRANCHES}
     mean_traj = rollout(_decel_fn(curve, means, model.relative), cond.v0, dt, n_steps)
+    bounded = _rebound_bounded(model, curve, means["unloading"], mean_traj)
+    if bounded is not means["unloading"]:
+        means["unloading"] = bounded
+        mean_traj = rollout(_decel_fn(curve, means, model.relative), cond.v0, dt, n_steps)
     draws = {b: _drawn_bias(model, b, cond, means[b], mean_traj, n_samples, rng, curve) for b in BRANCHES}
+    draws["unloading"] = _rebound_bounded(model, curve, draws["unloading"], mean_traj)
     return curve, draws, mean_traj, cae
 
 
@@ -356,6 +375,45 @@ def _bound(model, branch) -> float:
     The ``paper`` inputs learn the bias in m/s^2, as published, and are left alone.
     """
     return model.bias_spread(branch) if model.relative else np.inf
+
+
+def _rebound_bounded(model, curve, bias: _BranchBias | None, path: Trajectory) -> _BranchBias | None:
+    """``bias`` (unloading) with each function scaled down where it would take the rebound speed out of
+    the span, relative to the CAE's, that the training tests show
+    (:meth:`~crashfuse.method.model.FittedModel.rebound_range`).
+
+    The rebound speed is ``sqrt(2 W)`` of the spring-back's work ``W`` (:func:`rebound_work`) along
+    the unloading grid, at the mean path's velocity. Outside the span, the function's factor is the
+    largest in [0, 1) that keeps it inside (bisection: the work is convex in the factor, so the
+    factors inside form an interval from 0). As :func:`_bound`, for a relative target only: its GP
+    fitted to noise moved a rebound by 25 % where the tests and the CAE differ by 3 %.
+    """
+    lo, hi = model.rebound_range() if model.relative else (0.0, np.inf)
+    if bias is None or (lo <= 0.0 and np.isinf(hi)):
+        return bias
+    u = np.linspace(0.0, bias.x_hi, N_X)
+    a_cae = curve.unloading(u)
+    cae_work = rebound_work(u, a_cae)[0]
+    if cae_work <= 0.0:
+        return bias
+    m = bias.n_functions
+    v = _path_velocity("unloading", path, u) if model.inputs == "state" else np.zeros_like(u)
+    b = bias(np.tile(u, m), np.tile(v, m), np.repeat(np.arange(m), u.size)).reshape(m, u.size)
+    b = b * _scale(model, curve, "unloading", u)
+
+    def inside(gain):
+        ratio2 = rebound_work(u, a_cae + gain[:, None] * b)[0] / cae_work
+        return (ratio2 >= lo**2) & (ratio2 <= hi**2)
+
+    good = inside(np.ones(m))
+    if good.all():
+        return bias
+    gain, out = good.astype(float), np.ones(m)  # inside at ``gain``, outside at ``out``
+    for _ in range(30):
+        mid = 0.5 * (gain + out)
+        ok = inside(mid)
+        gain, out = np.where(ok, mid, gain), np.where(ok, out, mid)
+    return bias.with_gain(np.where(good, 1.0, gain))
 
 
 def _scale(model, curve, branch, x):

@@ -203,3 +203,29 @@ def _zero_crossing_time(time, v, i0: int) -> float:
     """Time where v crosses zero between samples i0 - 1 (v > 0) and i0 >= 1 (v <= 0)."""
     t0, t1, v0, v1 = time[i0 - 1], time[i0], v[i0 - 1], v[i0]
     return float(t0 + (t1 - t0) * v0 / (v0 - v1))
+
+
+def rebound_work(u, decel):
+    """Work per unit mass the spring-back returns before the deceleration stops pushing (J/kg).
+
+    ``max over u of int_0^u a du'`` (trapezoids) along an unloading branch: the car leaves the
+    barrier at the rebound speed ``sqrt(2 W)``, where the cumulative work peaks.
+
+    Parameters
+    ----------
+    u : ndarray, shape (n,)
+        Unloading coordinate ``s_max - s`` in m, increasing from the turnaround.
+    decel : ndarray, shape (..., n)
+        Deceleration along it in m/s^2 (leading axes: e.g. Monte Carlo samples).
+
+    Returns
+    -------
+    work : ndarray, shape (...)
+    peak : ndarray of int, shape (...)
+        Index where the cumulative work peaks; ``n - 1`` when it still grows at the branch's end
+        (the record stops before separation, so ``work`` is a lower bound).
+    """
+    a = np.asarray(decel, dtype=float)
+    steps = 0.5 * (a[..., 1:] + a[..., :-1]) * np.diff(np.asarray(u, dtype=float))
+    cumulative = np.concatenate([np.zeros(a.shape[:-1] + (1,)), np.cumsum(steps, axis=-1)], axis=-1)
+    return cumulative.max(axis=-1), cumulative.argmax(axis=-1)
