@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import functools
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -272,6 +274,12 @@ def test_the_cli_steps_of_a_fold_give_the_evaluate_fold(campaign, tmp_path, caps
                  "--inputs", "state", "--out", str(fold / "auto")]) == 0
     assert main(["score", str(folder), str(fold / "auto"), "--test", "T05", "--table-dir", str(fold / "auto")]) == 0
     assert set(pd.read_csv(fold / "auto" / "iso_table.csv").model) == {"CAE", "auto"}
+    # The workflow's most numerous job starts without the estimator, tracking, plotting or filtering libraries
+    probe = (f"import sys; from crashfuse.cli import main; main(['score', {str(folder)!r}, {str(fold / 'K1')!r}, "
+             f"'--test', 'T05', '--table-dir', {str(tmp_path / 'probe')!r}]); "
+             "print(sorted(m for m in ('sklearn', 'mlflow', 'matplotlib', 'scipy.signal') if m in sys.modules))")
+    assert subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          check=True).stdout.splitlines()[-1] == "[]"
     capsys.readouterr()
     assert main(["fit", str(folder), "--k", "2", "--inputs", "state", "--holdout", "T02", "--surrogate",
                  str(surrogate), "--n-grid", "40", "--pooled-from", str(tmp_path / "K1.cfmodel"),

@@ -22,7 +22,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import signal
 
 from crashfuse.errors import InputError
 from crashfuse.signals.pulse import Pulse
@@ -94,6 +93,8 @@ def cfc_filter(x, dt: float, cfc: int, axis: int = -1) -> np.ndarray:
         raise InputError(f"expected at least 2 samples along axis {axis}, got {n}", field="decel")
     if not np.isfinite(x).all():
         raise InputError("expected finite samples to filter, found NaN or infinity", field="decel")
+    from scipy import signal  # ~1 s to import: only jobs that filter raw records pay it
+
     pad = min(n - 1, math.ceil(1.0 / (cfc * dt)))
     return signal.filtfilt(b, a, x, axis=axis, padtype="odd", padlen=pad)
 
