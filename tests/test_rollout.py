@@ -19,6 +19,7 @@ from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import Condition, fit_model, load_model
 from crashfuse.method.projection import cae_curve
 import crashfuse.method.rollout as rollout_module
+from crashfuse.signals.domain import kinematics
 from crashfuse.signals.dynamics import Trajectory
 from crashfuse.method.rollout import predict
 from crashfuse.method.surrogate import CAESurrogate
@@ -463,8 +464,7 @@ def test_a_model_fitted_to_noise_keeps_the_rebound_within_what_the_tests_show(ca
                    n_samples=200, random_state=0, duration=0.15, dt=test.dt)
 
     def rebound(decel):
-        v = test.v0 - np.concatenate([[0.0], np.cumsum(0.5 * (decel[1:] + decel[:-1]) * np.diff(pred.time))])
-        return -v.min()
+        return -kinematics(decel, test.dt, test.v0)[0].min()
 
     lo, hi = m.rebound_range()
     assert 0.9 < lo <= 1.0 <= hi < 1.1

@@ -35,8 +35,8 @@ from crashfuse.method.effect_fit import faster_curve
 from crashfuse.method.hybrid import AUTO, PhysicsFirst, fit_physics
 from crashfuse.method.projection import (BRANCHES, BiasData, bias_data, bias_inputs, cae_curve, column_velocity,
                                          nominal_time, training_test)
-from crashfuse.signals.domain import displacement_branches, rebound_work
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
+from crashfuse.signals.domain import displacement_branches, rebound_work
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
 # are refused: refit); a change to one kind's objects leaves the other's files valid.
