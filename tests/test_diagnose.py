@@ -22,6 +22,7 @@ from crashfuse.world.presets import resolve
 from crashfuse.world.validation import true_headline
 
 N_CAE = 12
+N_PAIR_CAE = 150  # the second world's pair campaigns as validated (docs/diagnosis.md)
 
 
 @pytest.fixture(scope="module")
@@ -381,6 +382,29 @@ def test_a_refused_candidate_does_not_hide_a_supported_one():
               "strain_rate": cand(0.70, True)}
     assert best_supported(round_, round_) == "unloading"  # damping has the lowest error, 5 of 11 folds better
     assert best_supported(round_, ["damping", "mass"]) is None
+
+
+@pytest.mark.slow
+def test_two_effects_that_mask_each_other_are_named_as_a_pair(tmp_path):
+    """The second world with damping and an attached mass withheld together: +damping alone helps
+    as many folds as it spoils and +mass moves no held-out prediction, so no single effect
+    qualifies (the verdict was none); the pair, fitted together, lowers the held-out error on
+    nearly every fold and each member is needed beyond the other alone."""
+    from crashfuse.diagnosis.diagnose import markdown
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.world.multibody.generate import generate
+    from crashfuse.world.multibody.presets import resolve as resolve_second
+    # written and read back: the reader filters the world's raw CAE rows, as for any user
+    generate(tmp_path / "c", resolve_second("withheld", withhold=("damping", "mass")), seed=0, n_cae=N_PAIR_CAE)
+    campaign = read_campaign(tmp_path / "c")
+    diag = diagnose(campaign, effects=("damping", "mass"), residual_model=False, regions=False, progress=None)
+    assert diag.verdict == ["damping", "mass"]
+    damping, mass = diag.candidates["damping"], diag.candidates["mass"]
+    assert (damping.partner, mass.partner, damping.round, mass.round) == ("mass", "damping", 1, 1)
+    assert damping.fits is mass.fits and damping.evidence.accepted
+    assert diag.heldout_mse_ratio == damping.ratio < 0.6
+    assert [p["effects"] for p in diag.pairs if p["chosen"]] == [["damping", "mass"]]
+    assert "1 (with mass)" in markdown(diag.to_json())
 
 
 def test_permutation_test():

@@ -22,6 +22,7 @@ Parameter uncertainty is the jackknife standard error over the leave-one-test-ou
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 from pathlib import Path
 
@@ -35,7 +36,7 @@ from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto
                                          test_case, warm_start)
 from crashfuse.method.laws import decay_length, headline
 from crashfuse.errors import InputError
-from crashfuse.diagnosis.evidence import ALPHA, MOVE, Evidence, judge
+from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, Evidence, judge
 from crashfuse.diagnosis.gap import locate_gap
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import Campaign
@@ -60,6 +61,7 @@ class Candidate:
     evidence: Evidence
     acts_on: list  # test ids of the affected folds
     chosen: bool = False
+    partner: str | None = None  # the effect it was fitted and judged with when added as a pair
 
     @property
     def ratio(self) -> float:
@@ -90,6 +92,13 @@ class Diagnosis:
     settings: dict
     holdout: bool
     gap: object = None  # crashfuse.diagnosis.gap.GapMap (None for a single test)
+    pairs: list = dataclasses.field(default_factory=list)  # the pairs of effects tried (:func:`_pair_round`)
+
+    @property
+    def heldout_mse_ratio(self) -> float:
+        """Held-out mean squared error of CAE + the verdict's effects against CAE's, over every fold."""
+        return float(np.prod([c.ratio for c in {self.candidates[e].round: self.candidates[e]
+                                                for e in self.verdict}.values()]))
 
     def to_json(self) -> dict:
         mean = self.shrink.groupby(["model", "window_ms"], sort=False)["overall"].mean()
@@ -98,6 +107,7 @@ class Diagnosis:
             "verdict": list(self.verdict),
             "holdout": self.holdout,
             "effects": [_candidate_json(c, self.case) for c in self.candidates.values()],
+            "pairs": self.pairs,
             "regions": self.regions,
             "shrink": {m: {w: float(mean[(m, w)]) for w in WINDOWS if (m, w) in mean.index}
                        for m in self.shrink["model"].unique()},
@@ -162,8 +172,8 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     n = len(case.test_ids)
     sets = loto_sets(n) if holdout else [[0], [0]]  # a single test: its in-sample fit, twice
     cae = fit_folds(case, (), sets)
-    chosen, candidates, current = _select(case, sets, cae, effects, _rule(threshold, alpha, move, holdout), n_jobs,
-                                          say)
+    rule = _rule(threshold, alpha, move, holdout)
+    chosen, candidates, pairs, current = _select(case, sets, cae, effects, rule, n_jobs, say)
     preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
              "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
     shrink = _shrink(campaign, case, preds, current, k, inputs, n_samples, random_state, surrogate,
@@ -171,47 +181,122 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     settings = dict(effects=list(effects), threshold=threshold, alpha=alpha, move=move, k=k, inputs=inputs,
                     n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware)
     gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
-    return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap)
+    return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap,
+                     pairs)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Base:
+    """The effects chosen before a round: their fits, held-out errors (n_tests,) and predictions (n_tests, n_t)."""
+
+    chosen: tuple
+    fits: FoldFits
+    mse: np.ndarray
+    pred: np.ndarray
 
 
 def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: int, say):
     """Greedy forward selection on held-out evidence over the training ``sets`` of ``cae``, a round's
     candidates fitted on ``n_jobs`` processes; ``rule`` holds :func:`crashfuse.diagnosis.evidence.judge`'s
-    threshold, alpha and move. Returns (chosen, candidates, final fits)."""
-    n = len(case.test_ids)
-    chosen, candidates, current = [], {}, cae
-    ref_pred, reference = _heldout(case, cae)
-    test_rms = _rms(case, case.target)
-    say(f"diagnose: {n} tests, CAE held-out rms {_rms_g(reference):.3f} g")
-    for rnd in range(1, len(effects) + 1):
-        remaining = [e for e in effects if e not in chosen]
+    threshold, alpha and move. A round adds the best-supported single effect or, when none qualifies,
+    the best-supported pair (:func:`_pair_round`). Returns (chosen, candidates, pairs tried, final fits)."""
+    base = _Base((), cae, *_heldout(case, cae)[::-1])
+    candidates, pairs = {}, []
+    say(f"diagnose: {len(case.test_ids)} tests, CAE held-out rms {_rms_g(base.mse):.3f} g")
+    for rnd in itertools.count(1):
+        remaining = [e for e in effects if e not in base.chosen]
         if not remaining:
             break
-        preds = {}
-        round_fits = Parallel(n_jobs=n_jobs)(
-            delayed(fit_folds)(case, (*chosen, e), sets, start=warm_start(case, current, e)) for e in remaining)
+        round_fits = Parallel(n_jobs=n_jobs)(delayed(fit_folds)(case, (*base.chosen, e), sets,
+                                                                start=warm_start(case, base.fits, (e,)))
+                                             for e in remaining)
+        singles = {}
         for e, fits in zip(remaining, round_fits):
-            preds[e], mse = _heldout(case, fits)
-            change = _rms(case, preds[e] - ref_pred)
-            ev = judge(reference, mse, change, test_rms, groups=_groups(case, fits, e), **rule)
-            acts_on = [t for t, a in zip(case.test_ids, ev.affected) if a]
-            candidates[e] = c = Candidate(e, rnd, fits, mse, reference, ev, acts_on)
-            say(f"  round {rnd} +{e}: held-out rms {_rms_g(mse):.3f} g (x{c.ratio:.3f} MSE), acts on "
-                f"{' '.join(acts_on) or 'no test'}{_sole_note(case, ev)}: better on {ev.wins}, worse on {ev.losses} "
-                f"(sign test p {ev.p_value:.3g}, permutation p {ev.permutation_p:.3g}, "
-                f"x{ev.affected_ratio:.3f} MSE there)")
+            pred, mse, ev = _judged(case, fits, (e,), base, rule)
+            singles[e] = _Base((*base.chosen, e), fits, mse, pred)
+            candidates[e] = c = Candidate(e, rnd, fits, mse, base.mse, ev, _acts_on(case, ev))
+            say(f"  round {rnd} +{e}: {_evidence_line(case, c)}")
         for e in remaining:
             if not candidates[e].evidence.accepted:
                 say(f"diagnose: round {rnd} +{e} refused: {candidates[e].evidence.reason}")
         best = best_supported(candidates, remaining)
-        if best is None:
-            break
-        c = candidates[best]
-        c.chosen = True
-        chosen.append(best)
-        current, reference, ref_pred = c.fits, c.heldout_mse, preds[best]
-    say(f"diagnose: verdict {chosen or 'none'}")
-    return chosen, candidates, current
+        if best is not None:
+            added, base = [candidates[best]], singles[best]
+        else:
+            added, tried, base = _pair_round(case, sets, rule, n_jobs, say, rnd, base, singles,
+                                             {e: candidates[e] for e in singles})
+            pairs += tried
+            if not added:
+                break
+        for c in added:
+            c.chosen = True
+            candidates[c.effect] = c
+    say(f"diagnose: verdict {list(base.chosen) or 'none'}")
+    return list(base.chosen), candidates, pairs, base.fits
+
+
+def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict, candidates: dict):
+    """Every pair of the effects not yet chosen fitted together (with ``base``'s), when no single
+    effect qualified: two withheld effects can each spoil, fitted alone, as many folds as they help
+    (docs/decisions.md, section 32).
+
+    Only pairs with a member that, fitted alone, moves the held-out prediction of at least
+    :data:`~crashfuse.diagnosis.evidence.MIN_MATERIAL` counted folds are tried: masking shows as a
+    member that moves predictions and spoils as many as it helps; two effects the tests do not see
+    one at a time are not tried together (on a control or after the last effect, most rounds).
+
+    A pair is supported when its evidence holds against ``base`` and against each of its members
+    fitted alone (``singles``, this round's fits) - each member must be needed - and no parameter
+    of either sits at a physical bound. Returns the two member candidates of the supported pair of
+    lowest held-out error (or []), a summary of every pair tried, and the new base.
+    """
+    seen = {e for e, c in candidates.items() if (c.evidence.affected & ~c.evidence.sole).sum() >= MIN_MATERIAL}
+    pairs = [pair for pair in itertools.combinations(singles, 2) if seen.intersection(pair)]
+    say(f"diagnose: round {rnd}: no single effect qualifies; {len(pairs)} pairs with "
+        f"{' or '.join(sorted(seen)) or 'a member that moves predictions'}")
+    if not pairs:
+        return [], [], base
+    pair_fits = Parallel(n_jobs=n_jobs)(delayed(fit_folds)(case, (*base.chosen, *pair), sets,
+                                                           start=warm_start(case, base.fits, pair)) for pair in pairs)
+    best, tried = ([], base), []
+    for pair, fits in zip(pairs, pair_fits):
+        pred, mse, ev = _judged(case, fits, pair, base, rule)
+        members = [Candidate(e, rnd, fits, mse, base.mse, ev, _acts_on(case, ev), partner=other)
+                   for e, other in (pair, pair[::-1])]
+        beyond = {e: _judged(case, fits, (e,), singles[other], rule)[2] for e, other in (pair, pair[::-1])}
+        bound = [p for c in members for p in c.at_upper_bound]
+        reason = (ev.reason
+                  or next((f"{e} not needed beyond {c.partner} alone: {beyond[e].reason}"
+                           for e, c in zip(pair, members) if not beyond[e].accepted), "")
+                  or (f"at a physical bound: {', '.join(bound)}" if bound else ""))
+        say(f"  round {rnd} +{'+'.join(pair)}: {_evidence_line(case, members[0])}; {reason or 'supported'}")
+        tried.append({"effects": list(pair), "round": rnd, "heldout_mse_ratio": ev.ratio, "accepted": not reason,
+                      "refused_because": reason, "chosen": False})
+        if not reason and (not best[0] or ev.ratio < best[0][0].ratio):
+            best = members, _Base((*base.chosen, *pair), fits, mse, pred)
+    if best[0]:
+        tried[pairs.index((best[0][0].effect, best[0][1].effect))]["chosen"] = True
+    return best[0], tried, best[1]
+
+
+def _judged(case: TestCase, fits: FoldFits, new, base: _Base, rule: dict):
+    """Held-out prediction, mean squared error and :class:`Evidence` of ``fits`` (``base``'s effects
+    plus ``new``) against ``base``'s held-out errors and predictions."""
+    pred, mse = _heldout(case, fits)
+    groups = next((g for e in new if (g := _groups(case, fits, e)) is not None), None)
+    return pred, mse, judge(base.mse, mse, _rms(case, pred - base.pred), _rms(case, case.target), groups=groups,
+                            **rule)
+
+
+def _acts_on(case: TestCase, ev: Evidence) -> list:
+    return [t for t, a in zip(case.test_ids, ev.affected) if a]
+
+
+def _evidence_line(case: TestCase, c: Candidate) -> str:
+    ev = c.evidence
+    return (f"held-out rms {_rms_g(c.heldout_mse):.3f} g (x{c.ratio:.3f} MSE), acts on "
+            f"{' '.join(c.acts_on) or 'no test'}{_sole_note(case, ev)}: better on {ev.wins}, worse on {ev.losses} "
+            f"(sign test p {ev.p_value:.3g}, permutation p {ev.permutation_p:.3g}, x{ev.affected_ratio:.3f} MSE there)")
 
 
 def best_supported(candidates: dict, names) -> str | None:
@@ -366,7 +451,8 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
                      "affected_mse_ratio": c.evidence.affected_ratio, "accepted": c.evidence.accepted,
                      "refused_because": c.evidence.reason, "at_upper_bound": c.at_upper_bound,
                      "n_folds": int(c.heldout_mse.size), "heldout_rms_g": _rms_g(c.heldout_mse),
-                     "reference_rms_g": _rms_g(c.reference_mse), "fitted_with": list(c.fits.effects)},
+                     "reference_rms_g": _rms_g(c.reference_mse), "fitted_with": list(c.fits.effects),
+                     "added_with": c.partner},
         "reading": reading(c.effect, own(all_fit), case),
     }
 
@@ -448,11 +534,17 @@ def markdown(js: dict) -> str:
         se = e["headline_se"]
         head = ", ".join(f"{k} = {v:.4g}" + ("" if se[k] is None else f" (se {se[k]:.2g})")
                          for k, v in e["headline"].items())
-        lines.append(f"| {e['effect']} | {'yes' if e['chosen'] else 'no'} | {ev['round']} | "
+        pair = f" (with {ev['added_with']})" if ev.get("added_with") else ""
+        lines.append(f"| {e['effect']} | {'yes' if e['chosen'] else 'no'} | {ev['round']}{pair} | "
                      f"{ev['heldout_mse_ratio']:.3f} | {' '.join(ev['acts_on']) or 'none'} "
                      f"({len(ev['acts_on'])}/{ev['n_folds']}) | {ev['folds_better']} / {ev['folds_worse']} | "
                      f"{ev['sign_test_p']:.3g} / {ev['permutation_p']:.3g} | {ev['affected_mse_ratio']:.3f} | {head} | "
                      f"{e['reading']} |")
+    if js.get("pairs"):
+        lines += ["", "Pairs fitted together in a round where no single effect qualified:", ""]
+        lines += [f"- round {p['round']} {' + '.join(p['effects'])}: held-out MSE ratio {p['heldout_mse_ratio']:.3f}, "
+                  + ("chosen" if p["chosen"] else "supported" if p["accepted"] else f"refused: {p['refused_because']}")
+                  for p in js["pairs"]]
     lines += ["", "Fitted parameters (all tests; jackknife standard error over the folds):", ""]
     for e in js["effects"]:
         ps = "; ".join(f"{k} = {v['value']:.4g} {v['unit']}" + (f" (se {v['jackknife_se']:.2g})"

@@ -191,12 +191,13 @@ def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = No
     return FoldFits(tuple(effects), params, np.exp(z), cost[best, np.arange(len(train_sets))])
 
 
-def warm_start(case: TestCase, current: FoldFits, effect: str) -> np.ndarray | None:
-    """Starting points of ``current``'s effects plus ``effect``: per training set, the values fitted
-    there and the new effect's first listed start (None when ``current`` fitted nothing)."""
+def warm_start(case: TestCase, current: FoldFits, effects) -> np.ndarray | None:
+    """Starting points of ``current``'s effects plus the new ``effects`` (a sequence of names): per
+    training set, the values fitted there and each new parameter's first listed start (None when
+    ``current`` fitted nothing)."""
     if current.theta.shape[1] == 0:
         return None
-    new = [p.start[0] for p in parameters_to_fit(case, (effect,))]
+    new = [p.start[0] for p in parameters_to_fit(case, effects)]
     return np.hstack([current.theta, np.tile(new, (current.theta.shape[0], 1))])
 
 

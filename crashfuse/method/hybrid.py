@@ -230,7 +230,7 @@ def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -
     current = fit_folds(case, (), sets)
     chosen, tried = (), {"none": _inner_error(case, current, rows)}
     while len(chosen) < len(candidates):
-        trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, e))
+        trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, (e,)))
                   for e in candidates if e not in chosen}
         errors = {e: _inner_error(case, fits, rows) for e, fits in trials.items()}
         tried.update({"+".join(chosen + (e,)): err for e, err in errors.items()})

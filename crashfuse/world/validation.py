@@ -89,7 +89,7 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
     # Shrinking is judged on ISO 0-60 ms, which the selection does not use (it adds an effect only
     # when the held-out squared error drops, so that ratio cannot fail). Unloading acts after
     # 60 ms: ISO 0-60 cannot show it - its row says so rather than pass.
-    base["heldout_mse_ratio"] = float(np.prod([diag.candidates[e].ratio for e in diag.verdict]))
+    base["heldout_mse_ratio"] = diag.heldout_mse_ratio
     base["shrinks"] = bool(base["iso_0_60_effects"] > base["iso_0_60_cae"]) if expected else None
     if len(expected) != 1:
         return [dict(base, parameter="", true=np.nan, fitted=np.nan, fitted_se=np.nan, rel_error=np.nan,
