@@ -32,7 +32,7 @@ from joblib import Parallel, delayed
 
 from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect
 from crashfuse.gp.threads import one_blas_thread
-from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, predict,
+from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
                                          test_case, warm_start)
 from crashfuse.method.laws import decay_length, headline
 from crashfuse.errors import InputError
@@ -223,8 +223,8 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
         if best is not None:
             added, base = [candidates[best]], singles[best]
         else:
-            added, tried, base = _pair_round(case, sets, rule, n_jobs, say, rnd, base, singles,
-                                             {e: candidates[e] for e in singles})
+            added, tried, base = _pair_round(case, sets, rule, n_jobs, say, rnd, base,
+                                             {e: candidates[e] for e in remaining})
             pairs += tried
             if not added:
                 break
@@ -235,7 +235,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
     return list(base.chosen), candidates, pairs, base.fits
 
 
-def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict, candidates: dict):
+def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
     """Every pair of the effects not yet chosen fitted together (with ``base``'s), when no single
     effect qualified: two withheld effects can each spoil, fitted alone, as many folds as they help
     (docs/decisions.md, section 32).
@@ -245,12 +245,13 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict, 
     member that moves predictions and spoils as many as it helps; two effects the tests do not see
     one at a time are not tried together (on a control or after the last effect, most rounds).
 
-    A pair is supported when its evidence holds against ``base`` and against each of its members
-    fitted alone (``singles``, this round's fits) - each member must be needed - and no parameter
-    of either sits at a physical bound. Returns the two member candidates of the supported pair of
-    lowest held-out error (or []), a summary of every pair tried, and the new base.
+    A pair is supported when its evidence holds against ``base``, no parameter of either member sits
+    at a physical bound, and its evidence holds against each member fitted alone (:func:`_alone`,
+    from this round's candidates ``singles`` and the pair's values) - each member must be needed. Returns the
+    two member candidates of the supported pair of lowest held-out error (or []), a summary of
+    every pair tried, and the new base.
     """
-    seen = {e for e, c in candidates.items() if (c.evidence.affected & ~c.evidence.sole).sum() >= MIN_MATERIAL}
+    seen = {e for e, c in singles.items() if (c.evidence.affected & ~c.evidence.sole).sum() >= MIN_MATERIAL}
     pairs = [pair for pair in itertools.combinations(singles, 2) if seen.intersection(pair)]
     say(f"diagnose: round {rnd}: no single effect qualifies; {len(pairs)} pairs with "
         f"{' or '.join(sorted(seen)) or 'a member that moves predictions'}")
@@ -263,12 +264,13 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict, 
         pred, mse, ev = _judged(case, fits, pair, base, rule)
         members = [Candidate(e, rnd, fits, mse, base.mse, ev, _acts_on(case, ev), partner=other)
                    for e, other in (pair, pair[::-1])]
-        beyond = {e: _judged(case, fits, (e,), singles[other], rule)[2] for e, other in (pair, pair[::-1])}
         bound = [p for c in members for p in c.at_upper_bound]
-        reason = (ev.reason
-                  or next((f"{e} not needed beyond {c.partner} alone: {beyond[e].reason}"
-                           for e, c in zip(pair, members) if not beyond[e].accepted), "")
-                  or (f"at a physical bound: {', '.join(bound)}" if bound else ""))
+        reason = ev.reason or (f"at a physical bound: {', '.join(bound)}" if bound else "")
+        for e, other in (pair, pair[::-1]):
+            if not reason:
+                alone = _alone(case, sets, fits, (*base.chosen, other), singles[other].fits)
+                needed = _judged(case, fits, (e,), alone, rule)[2]
+                reason = "" if needed.accepted else f"{e} not needed beyond {other} alone: {needed.reason}"
         say(f"  round {rnd} +{'+'.join(pair)}: {_evidence_line(case, members[0])}; {reason or 'supported'}")
         tried.append({"effects": list(pair), "round": rnd, "heldout_mse_ratio": ev.ratio, "accepted": not reason,
                       "refused_because": reason, "chosen": False})
@@ -277,6 +279,20 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict, 
     if best[0]:
         tried[pairs.index((best[0][0].effect, best[0][1].effect))]["chosen"] = True
     return best[0], tried, best[1]
+
+
+def _alone(case: TestCase, sets, pair: FoldFits, effects, single: FoldFits) -> _Base:
+    """``effects`` (a pair's fit without one member) fitted as well as the search can: per training
+    set the better of ``single``, their fit in the round, and a refit from the pair's values - a
+    single fit stuck in a worse optimum must not make the dropped member look needed."""
+    names = {p.name for p in parameters_to_fit(case, effects)}
+    keep = [i for i, p in enumerate(pair.params) if p.name in names]
+    refit = fit_folds(case, effects, sets, start=pair.theta[:, keep])
+    take = refit.cost < single.cost
+    fits = dataclasses.replace(single, theta=np.where(take[:, None], refit.theta, single.theta),
+                               cost=np.minimum(refit.cost, single.cost))
+    pred, mse = _heldout(case, fits)
+    return _Base(tuple(effects), fits, mse, pred)
 
 
 def _judged(case: TestCase, fits: FoldFits, new, base: _Base, rule: dict):
