@@ -247,9 +247,9 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
 
     A pair is supported when its evidence holds against ``base``, no parameter of either member sits
     at a physical bound, and its evidence holds against each member fitted alone (:func:`_alone`,
-    from this round's candidates ``singles`` and the pair's values) - each member must be needed. Returns the
-    two member candidates of the supported pair of lowest held-out error (or []), a summary of
-    every pair tried, and the new base.
+    from this round's candidates ``singles`` and the pair's values) - each member must be needed.
+    Returns the two member candidates of the supported pair of lowest held-out error (or []), a
+    summary of every pair tried, and the new base.
     """
     seen = {e for e, c in singles.items() if (c.evidence.affected & ~c.evidence.sole).sum() >= MIN_MATERIAL}
     pairs = [pair for pair in itertools.combinations(singles, 2) if seen.intersection(pair)]
