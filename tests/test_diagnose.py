@@ -96,16 +96,30 @@ def test_powertrain_arrest_and_mount_yield(case):
     label = plant.labels[plant.group[0]]
     theta = {p.name: np.array([1.0]) for p in parameters("powertrain", plant.labels)}
     theta.update({f"powertrain.mass[{label}]": np.array([200.0]), f"powertrain.gap[{label}]": np.array([0.4]),
-                  "powertrain.f_mount": np.array([5e4])})
+                  "powertrain.f_mount": np.array([5e4]), "powertrain.k_mount": np.array([2.5e6])})
     fn = decel_fn(plant, ("powertrain",), theta)
     m = plant.mass[0]
     before, after = 0.35, 0.55
     assert fn(_state(before, 10.0))[0] == pytest.approx(plant.loading(np.array([before]), 10.0)[0][0], rel=1e-12)
     expected = (m * plant.loading(np.array([after]), 10.0)[0][0] + 5e4) / (m - 200.0)  # yielded mount, body only
     assert fn(_state(after, 10.0))[0] == pytest.approx(expected, rel=1e-12)
-    half = 0.4 + 0.5 * 0.01  # half the yield travel: half the yield force
+    half = 0.4 + 0.5 * 0.02  # half the yield travel (5e4 / 2.5e6 = 2 cm): half the yield force
     expected = (m * plant.loading(np.array([half]), 10.0)[0][0] + 2.5e4) / (m - 200.0)
     assert fn(_state(half, 10.0))[0] == pytest.approx(expected, rel=1e-9)
+
+
+def test_soft_powertrain_mounts_push_back_over_their_whole_travel(case):
+    """Mounts that never yield (rubber) return their force along their own stiffness on the spring-back."""
+    plant = case.plant.subset([7])
+    label = plant.labels[plant.group[0]]
+    theta = {p.name: np.array([1.0]) for p in parameters("powertrain", plant.labels)}
+    theta.update({f"powertrain.mass[{label}]": np.array([200.0]), f"powertrain.gap[{label}]": np.array([0.4]),
+                  "powertrain.f_mount": np.array([5e5]), "powertrain.k_mount": np.array([1e6])})
+    fn, cae = decel_fn(plant, ("powertrain",), theta), decel_fn(plant, (), {})
+    m, s_max = plant.mass[0], 0.55  # 150 mm into the mounts: 150 kN, below the yield force
+    for back, mount in ((0.0, 1.5e5), (0.05, 1.0e5), (0.15, 0.0), (0.2, 0.0)):
+        st = _state(s_max - back, -1.0, s_max, loading=False)
+        assert fn(st)[0] * (m - 200.0) - cae(st)[0] * m == pytest.approx(mount, rel=1e-9, abs=1e-6)
 
 
 def test_zero_effects_reproduce_the_cae_run(control_world):

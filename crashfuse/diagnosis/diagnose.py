@@ -507,7 +507,8 @@ def reading(effect: str, p: dict, case: TestCase) -> str:
     parts = [f"{p[f'powertrain.mass[{lab}]']:.0f} kg ({lab}) after {1e3 * p[f'powertrain.gap[{lab}]']:.0f} mm"
              for lab in case.plant.labels]
     return (f"a powertrain mass is stopped by the barrier once the crush closes its gap: {'; '.join(parts)}; "
-            f"its mounts yield at {p['powertrain.f_mount'] / 1e3:.0f} kN")
+            f"its mounts ({p['powertrain.k_mount'] / 1e6:.1f} kN/mm) yield at {p['powertrain.f_mount'] / 1e3:.0f} kN "
+            f"after {1e3 * p['powertrain.f_mount'] / p['powertrain.k_mount']:.0f} mm")
 
 
 def write_diagnosis(diag: Diagnosis, out, campaign: Campaign) -> Path:

@@ -42,9 +42,10 @@ The laws (each one modifies the balance; their order does not matter):
 ``powertrain``   A second mass ``m_p`` (per powertrain label) riding in the body is arrested by the
     barrier once the crush closes its gap ``g``: from then on it leaves the decelerating mass
     (``M_eff -= m_p``; its momentum goes into the barrier) and the body drives into it through
-    mounts that are elastic up to a yield force ``f_mount`` (yield displacement
-    :data:`MOUNT_YIELD_TRAVEL`) and perfectly plastic beyond: ``F_extra += min(f_mount,
-    k_m (s - g))`` on loading, unloading elastically from its peak.
+    mounts of stiffness ``k_mount``, elastic up to a yield force ``f_mount`` and perfectly plastic
+    beyond: ``F_extra += min(f_mount, k_mount (s - g))`` on loading, unloading elastically from
+    its peak. Both are fitted: stiff mounts that yield early return little on the spring-back,
+    soft mounts that never yield push the body back over the whole travel (rubber mounts).
 ``mass``         The decelerating mass exceeds the nominal test weight: ``M_eff += extra`` (kg).
 
 Every effect lists its parameters with physical bounds and starting points (:class:`Param`);
@@ -70,12 +71,12 @@ QUANTITIES = {
     "powertrain.mass": "mass",
     "powertrain.gap": "gap",
     "powertrain.f_mount": "mount_yield_force",
+    "powertrain.k_mount": "mount_stiffness",
     "unloading.k": "initial_unloading_stiffness",
     "unloading.l0": "initial_decay_floor",
     "unloading.n": "unloading_exponent",
     "mass.extra": "extra",
 }
-MOUNT_YIELD_TRAVEL = 0.01  # m: powertrain mounts yield after 1 cm of relative travel (k_m = f_mount / 1 cm)
 RUNS_PER_COEF = 3  # moving CAE runs per regression coefficient before a crush's force-speed fit is used
 
 N_S, N_U = 2048, 512  # loading and unloading table points of a Plant
@@ -328,7 +329,8 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
     per_label = [p for lab in labels for p in (
         _param(f"powertrain.mass[{lab}]", 5.0, 0.45 * mass_hint, (150.0, 250.0)),
         _param(f"powertrain.gap[{lab}]", 0.05, 1.2, (0.35, 0.5)))]
-    return (*per_label, _param("powertrain.f_mount", 1e3, 5e5, (5e4, 1e5)))
+    return (*per_label, _param("powertrain.f_mount", 1e3, 5e5, (5e4, 1e5)),
+            _param("powertrain.k_mount", 1e5, 1e8, (5e6, 1e7)))
 
 
 def _param(name: str, lower: float, upper: float, start: tuple, upper_is_limit: bool = True) -> Param:
@@ -378,8 +380,7 @@ def decel_fn(plant: Plant, effects, theta: dict):
         if "damping" in effects:
             force = force + theta["damping.c"] * st.v
         if pt is not None:
-            m_p, gap, f_y = pt
-            k_m = f_y / MOUNT_YIELD_TRAVEL
+            m_p, gap, f_y, k_m = pt
             struck = st.s_max > gap
             peak = np.minimum(f_y, k_m * np.maximum(st.s_max - gap, 0.0))
             mount = np.where(load, peak, np.maximum(peak - k_m * st.u, 0.0))
@@ -399,7 +400,7 @@ def _powertrain_arrays(plant: Plant, theta: dict):
     """Per-sample powertrain mass, gap (by the sample's label) and mount yield force."""
     m_p = np.choose(plant.group, [theta[f"powertrain.mass[{lab}]"] for lab in plant.labels])
     gap = np.choose(plant.group, [theta[f"powertrain.gap[{lab}]"] for lab in plant.labels])
-    return m_p, gap, theta["powertrain.f_mount"]
+    return m_p, gap, theta["powertrain.f_mount"], theta["powertrain.k_mount"]
 
 
 def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Trajectory:
