@@ -421,6 +421,25 @@ def test_two_effects_that_mask_each_other_are_named_as_a_pair(tmp_path):
     assert "1 (with mass)" in markdown(diag.to_json())
 
 
+@pytest.mark.slow
+def test_an_engine_on_rubber_mounts_leaves_no_gap_for_unloading(tmp_path):
+    """The second world's engine (subtle, seed 2) rides on progressive rubber mounts that never yield:
+    after the contact they push the body back over their whole travel. With the old law's mounts
+    (yielding after a fixed 1 cm) that spring-back stayed in the gap and a spurious `unloading` took
+    it (verdict powertrain, unloading); with the mount stiffness fitted the engine explains it."""
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.world.multibody.generate import generate
+    from crashfuse.world.multibody.presets import resolve as resolve_second
+    generate(tmp_path / "c", resolve_second("withheld", withhold="powertrain", strength="subtle"), seed=2,
+             n_cae=N_PAIR_CAE)
+    diag = diagnose(read_campaign(tmp_path / "c"), effects=("powertrain", "unloading"), residual_model=False,
+                    regions=False, random_state=2, progress=None)
+    assert diag.verdict == ["powertrain"]
+    assert diag.heldout_mse_ratio < 0.25  # 0.41 with the 1 cm mounts
+    engine = next(e for e in diag.to_json()["effects"] if e["effect"] == "powertrain")
+    assert engine["params"]["powertrain.k_mount"]["value"] < 1e7  # softer than 1 cm at 100 kN
+
+
 def test_permutation_test():
     assert permutation_test([]) == 1.0
     assert permutation_test([2.0, 1.0, 3.0]) == pytest.approx(1 / 8)  # only the observed signs reach its sum
