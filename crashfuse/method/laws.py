@@ -330,7 +330,7 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
         _param(f"powertrain.mass[{lab}]", 5.0, 0.45 * mass_hint, (150.0, 250.0)),
         _param(f"powertrain.gap[{lab}]", 0.05, 1.2, (0.35, 0.5)))]
     return (*per_label, _param("powertrain.f_mount", 1e3, 5e5, (5e4, 1e5)),
-            _param("powertrain.k_mount", 1e5, 1e8, (5e6, 1e7)))
+            _param("powertrain.k_mount", 1e5, 1e8, (5e6, 1e7), upper_is_limit=False))  # stiffer: a sharper step
 
 
 def _param(name: str, lower: float, upper: float, start: tuple, upper_is_limit: bool = True) -> Param:
@@ -397,7 +397,7 @@ def decay_length(params: dict, peak_force):
 
 
 def _powertrain_arrays(plant: Plant, theta: dict):
-    """Per-sample powertrain mass, gap (by the sample's label) and mount yield force."""
+    """Per-sample powertrain mass, gap (by the sample's label), mount yield force and mount stiffness."""
     m_p = np.choose(plant.group, [theta[f"powertrain.mass[{lab}]"] for lab in plant.labels])
     gap = np.choose(plant.group, [theta[f"powertrain.gap[{lab}]"] for lab in plant.labels])
     return m_p, gap, theta["powertrain.f_mount"], theta["powertrain.k_mount"]
