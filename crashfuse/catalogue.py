@@ -80,7 +80,9 @@ CATALOGUE = {e.name: e for e in (
                Quantity("c", "N s/m", f"damping force per unit crush speed at the reference crush speed "
                         f"{V_REF:g} m/s (the coefficient of a linear law)", headline=True),
                Quantity("quadratic_coefficient", "N s^2/m^2", "damping force per squared crush speed (a "
-                        "quadratic law: fluids and foam squeezed out)"))),
+                        "quadratic law: fluids and foam squeezed out)"),
+               Quantity("speed_exponent", "-", "the damping force grows as the crush speed to this power (1: "
+                        "linear, 2: quadratic)"))),
     Effect("strain_rate", "rate hardening of the crush strength on loading: the structure is stronger the faster "
            "it is crushed, so the gap grows with impact speed", (
                Quantity("gain_at_15mps", "-", f"fractional increase of the crush strength over the static one at "

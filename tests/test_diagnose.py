@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from crashfuse.catalogue import EFFECTS
+from crashfuse.catalogue import EFFECTS, V_REF
 from crashfuse.method import effect_fit as ef
 from crashfuse.cli import main
 from crashfuse.diagnosis.diagnose import Candidate, diagnose, write_diagnosis
@@ -54,8 +54,13 @@ def test_laws_against_closed_forms(case):
     m = plant.mass[0]
     base = decel_fn(plant, (), {})(_state(s, v))[0]
     assert base == pytest.approx(a_cae, rel=1e-12)
-    damped = decel_fn(plant, ("damping",), {"damping.c": np.array([4000.0])})(_state(s, v))[0]
-    assert damped == pytest.approx(a_cae + 4000.0 * v / m, rel=1e-12)
+    damped = decel_fn(plant, ("damping",), {"damping.c": np.array([4000.0]), "damping.n": np.array([1.0])})(_state(s, v))[0]
+    assert damped == pytest.approx(a_cae + 4000.0 * v / m, rel=1e-12)  # n = 1: viscous
+    quadratic = decel_fn(plant, ("damping",), {"damping.c": np.array([4000.0]), "damping.n": np.array([2.0])})
+    assert quadratic(_state(s, v))[0] == pytest.approx(a_cae + 4000.0 / V_REF * v**2 / m, rel=1e-12)
+    rebound = quadratic(_state(s, -2.0, s + 0.01, loading=False))[0]  # on the spring-back it opposes the motion
+    assert rebound == pytest.approx(decel_fn(plant, (), {})(_state(s, -2.0, s + 0.01, loading=False))[0]
+                                    - 4000.0 / V_REF * 4.0 / m, rel=1e-12)
     heavy = decel_fn(plant, ("mass",), {"mass.extra": np.array([100.0])})(_state(s, v))[0]
     assert heavy == pytest.approx(a_cae * m / (m + 100.0), rel=1e-12)
     rate = decel_fn(plant, ("strain_rate",), {"strain_rate.d": np.array([3000.0]),
@@ -136,15 +141,18 @@ def test_zero_effects_reproduce_the_cae_run(control_world):
 
 
 def test_fit_recovers_parameters_of_its_own_law(case):
-    """Targets made by the laws themselves: the fit must find the parameters again."""
+    """Targets made by the laws themselves: the fit must find the parameters again (a quadratic damping:
+    the fit starts from a viscous one)."""
     rows = np.arange(len(case.test_ids))
-    truth = {"damping.c": np.full(rows.size, 3000.0), "mass.extra": np.full(rows.size, 150.0)}
+    truth = {"damping.c": np.full(rows.size, 3000.0), "damping.n": np.full(rows.size, 2.0),
+             "mass.extra": np.full(rows.size, 150.0)}
     from crashfuse.method.laws import simulate
     made = simulate(case.plant, ("damping", "mass"), truth, ef.DT, case.n_steps).decel
     synthetic = ef.TestCase(case.test_ids, case.plant, made, np.ones_like(case.mask), case.time, case.cae_source)
     fits = ef.fit_folds(synthetic, ("damping", "mass"), [list(rows)])
     got = dict(zip([p.name for p in fits.params], fits.theta[0]))
     assert got["damping.c"] == pytest.approx(3000.0, rel=0.01)
+    assert got["damping.n"] == pytest.approx(2.0, rel=0.01)
     assert got["mass.extra"] == pytest.approx(150.0, rel=0.01)
 
 
@@ -326,7 +334,7 @@ def test_a_parameter_that_never_left_its_start_is_not_identified(case):
     from crashfuse.diagnosis.diagnose import _candidate_json
     params = ef.parameters_to_fit(case, ("damping",))
     for all_tests, identified in ((params[0].start[0], False), (2500.0, True)):
-        fits = ef.FoldFits(("damping",), params, np.array([[2500.0], [all_tests]]), np.zeros(2))
+        fits = ef.FoldFits(("damping",), params, np.array([[2500.0, 1.5], [all_tests, 1.5]]), np.zeros(2))
         js = _candidate_json(Candidate("damping", 1, fits, np.ones(1), np.ones(1), _tie(1), []), case)
         assert js["params"]["damping.c"]["identified"] is identified
 

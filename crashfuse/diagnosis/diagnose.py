@@ -34,7 +34,7 @@ from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect
 from crashfuse.gp.threads import one_blas_thread
 from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
                                          test_case, warm_start)
-from crashfuse.method.laws import decay_length, headline
+from crashfuse.method.laws import damping_force, decay_length, headline
 from crashfuse.errors import InputError
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, Evidence, judge
 from crashfuse.diagnosis.gap import locate_gap
@@ -495,8 +495,9 @@ def reading(effect: str, p: dict, case: TestCase) -> str:
         return (f"the crush force grows with crush speed: by about {100 * gain:.0f} % at the {at} impact speed "
                 f"({100 * (V_REF / p['strain_rate.d']) ** (1 / p['strain_rate.q']):.0f} % at {V_REF:.0f} m/s)")
     if effect == "damping":
-        return (f"a viscous crush damping of {p['damping.c'] / 1e3:.1f} kN s/m adds about "
-                f"{p['damping.c'] * v / mass / G0:.1f} g at first contact at {at}")
+        return (f"a crush damping growing as the crush speed to the power {p['damping.n']:.2f} "
+                f"({p['damping.c'] / 1e3:.1f} kN s/m at {V_REF:.0f} m/s) adds about "
+                f"{damping_force(p, v) / mass / G0:.1f} g at first contact at {at}")
     if effect == "mass":
         return f"the decelerating mass is about {p['mass.extra']:.0f} kg more than the nominal test weight"
     if effect == "unloading":

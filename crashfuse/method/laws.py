@@ -30,7 +30,10 @@ The laws (each one modifies the balance; their order does not matter):
     ``F_crush += M a_CAE(s, 0) (v / D)^(1/q)`` (``d`` m/s: the crush speed at which the static
     strength doubles; ``q``). Only the strength hardens: the CAE model's own viscous and inertial
     forces are not multiplied (without ``da/dv`` the whole CAE force counts as static).
-``damping``      Viscous (Kelvin-Voigt) crush damping ``F_extra += c v`` on both branches (``c`` N s/m).
+``damping``      Crush damping on both branches, a power of the crush speed:
+    ``F_extra += c V_REF sign(v) |v / V_REF|^n`` (``c`` N s/m: the force per crush speed at
+    :data:`~crashfuse.catalogue.V_REF`; ``n`` 1 viscous (Kelvin-Voigt), 2 quadratic: fluids and
+    foam squeezed out).
 ``unloading``    Hysteretic power-law unloading, replacing the CAE unloading: with the static force
     at maximum crush ``F_m = M a_CAE(s_max, 0)`` and the initial decay length
     ``lam = l0 + F_m / k`` (the force falls at first by ``F_m / lam`` per metre: ``k`` is the
@@ -66,6 +69,7 @@ from crashfuse.signals.dynamics import State, Trajectory, rollout
 # ``powertrain.gap`` stand for their per-label parameters ``powertrain.mass[label]``...).
 QUANTITIES = {
     "damping.c": "c",
+    "damping.n": "speed_exponent",
     "strain_rate.d": "doubling_speed",
     "strain_rate.q": "inverse_rate_exponent",
     "powertrain.mass": "mass",
@@ -316,7 +320,7 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
     """
     check_effect(effect)
     if effect == "damping":
-        return (_param("damping.c", 10.0, 1e5, (1e3, 1e4)),)
+        return (_param("damping.c", 10.0, 1e5, (1e3, 1e4)), _param("damping.n", 0.5, 3.0, (1.0, 1.0)))
     if effect == "strain_rate":
         return (_param("strain_rate.d", 1e-2, 1e8, (1e2, 1e4), upper_is_limit=False),
                 _param("strain_rate.q", 1.0, 12.0, (3.0, 6.0)))
@@ -378,7 +382,7 @@ def decel_fn(plant: Plant, effects, theta: dict):
             force = np.where(load, force, unloading_force(st))
         mass = plant.mass + (theta["mass.extra"] if "mass" in effects else 0.0)
         if "damping" in effects:
-            force = force + theta["damping.c"] * st.v
+            force = force + damping_force(theta, st.v)
         if pt is not None:
             m_p, gap, f_y, k_m = pt
             struck = st.s_max > gap
@@ -388,6 +392,12 @@ def decel_fn(plant: Plant, effects, theta: dict):
             mass = mass - np.where(struck, m_p, 0.0)
         return force / mass
     return decel
+
+
+def damping_force(params: dict, v):
+    """The ``damping`` law's force in N at crush speed ``v`` (m/s, negative on unloading):
+    ``c V_REF sign(v) |v / V_REF|^n``, ``c v`` for ``n = 1``."""
+    return params["damping.c"] * V_REF * np.sign(v) * np.abs(v / V_REF) ** params["damping.n"]
 
 
 def decay_length(params: dict, peak_force):
