@@ -435,18 +435,34 @@ def test_an_engine_on_rubber_mounts_leaves_no_gap_for_unloading(tmp_path):
     after the contact they push the body back over their whole travel. With the old law's mounts
     (yielding after a fixed 1 cm) that spring-back stayed in the gap and a spurious `unloading` took
     it (verdict powertrain, unloading); with the mount stiffness fitted the engine explains it."""
-    from crashfuse.io.campaign import read_campaign
-    from crashfuse.world.multibody.generate import generate
-    from crashfuse.world.multibody.presets import resolve as resolve_second
-    generate(tmp_path / "c", resolve_second("withheld", withhold="powertrain", strength="subtle"), seed=2,
-             n_cae=N_PAIR_CAE)
-    diag = diagnose(read_campaign(tmp_path / "c"), effects=("powertrain", "unloading"), residual_model=False,
-                    regions=False, random_state=2, progress=None)
+    diag = _second_world_subtle_engine(tmp_path, seed=2)
     assert diag.verdict == ["powertrain"]
     assert diag.heldout_mse_ratio < 0.25  # 0.41 with the 1 cm mounts
     engine = next(e for e in diag.to_json()["effects"] if e["effect"] == "powertrain")
     assert engine["params"]["powertrain.k_mount"]["value"] < 1e7  # softer than 1 cm at 100 kN
 
+
+
+@pytest.mark.slow
+def test_a_later_effect_must_be_needed_beyond_the_chosen_ones_refitted(tmp_path):
+    """Second world, subtle powertrain, seed 1: round 2's +unloading, warm-started from round 1's
+    powertrain, beat round 1 only by a better optimum of the engine's own parameters; refitting
+    powertrain alone from that fit leaves unloading nothing to explain (verdict powertrain,
+    unloading without the check: docs/decisions.md, section 34)."""
+    diag = _second_world_subtle_engine(tmp_path, seed=1)
+    assert diag.verdict == ["powertrain"]
+    unloading = next(e["evidence"] for e in diag.to_json()["effects"] if e["effect"] == "unloading")
+    assert unloading["round"] == 2 and "not needed beyond powertrain" in unloading["refused_because"]
+
+
+def _second_world_subtle_engine(tmp_path, seed):
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.world.multibody.generate import generate
+    from crashfuse.world.multibody.presets import resolve as resolve_second
+    generate(tmp_path / "c", resolve_second("withheld", withhold="powertrain", strength="subtle"), seed=seed,
+             n_cae=N_PAIR_CAE)
+    return diagnose(read_campaign(tmp_path / "c"), effects=("powertrain", "unloading"), residual_model=False,
+                    regions=False, random_state=seed, progress=None)
 
 def test_permutation_test():
     assert permutation_test([]) == 1.0

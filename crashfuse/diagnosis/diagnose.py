@@ -219,7 +219,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
         for e in remaining:
             if not candidates[e].evidence.accepted:
                 say(f"diagnose: round {rnd} +{e} refused: {candidates[e].evidence.reason}")
-        best = best_supported(candidates, remaining)
+        best = _needed_best(case, sets, rule, say, rnd, base, candidates, remaining)
         if best is not None:
             added, base = [candidates[best]], singles[best]
         else:
@@ -233,6 +233,22 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
             candidates[c.effect] = c
     say(f"diagnose: verdict {list(base.chosen) or 'none'}")
     return list(base.chosen), candidates, pairs, base.fits
+
+
+def _needed_best(case, sets, rule, say, rnd, base: _Base, candidates: dict, names):
+    """:func:`best_supported` of ``names``, each pick also needed beyond the effects chosen before
+    refitted from its own fit's values (:func:`_alone`, as a pair's member): a candidate whose gain is
+    a better optimum of the chosen effects' parameters, not its own law, is refused and the next
+    best-supported is tried (docs/decisions.md, section 34)."""
+    while (best := best_supported(candidates, names)) is not None and base.chosen:
+        c = candidates[best]
+        needed = _judged(case, c.fits, (best,), _alone(case, sets, c.fits, base.chosen, base.fits), rule)[2]
+        if needed.accepted:
+            break
+        reason = f"not needed beyond {' '.join(base.chosen)} refitted from its fit: {needed.reason}"
+        c.evidence = dataclasses.replace(c.evidence, accepted=False, reason=reason)
+        say(f"diagnose: round {rnd} +{best} refused: {reason}")
+    return best
 
 
 def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
