@@ -308,6 +308,13 @@ def test_paper_campaign_verdict():
     diag = diagnose(campaign, effects=("strain_rate", "powertrain", "mass", "damping"), residual_model=False,
                     regions=False, progress=None)
     assert sorted(diag.verdict) == ["powertrain", "strain_rate"]
+    # Each chosen effect reads as fitted with the other (the model of the shrink table), not as
+    # in its own round: powertrain alone, round 1, takes up part of the rate hardening's gap.
+    chosen = [e for e in diag.to_json()["effects"] if e["chosen"]]
+    assert [sorted(e["evidence"]["fitted_with"]) for e in chosen] == [["powertrain", "strain_rate"]] * 2
+    assert chosen[0]["params"] == chosen[1]["params"]
+    from crashfuse.diagnosis.diagnose import markdown
+    assert markdown(diag.to_json()).count("- verdict (fitted with") == 1
 
 
 def test_a_law_at_its_upper_bound_is_flagged(case):

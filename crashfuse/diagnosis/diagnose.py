@@ -231,6 +231,8 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
         for c in added:
             c.chosen = True
             candidates[c.effect] = c
+    for e in base.chosen:  # read as fitted together: the model of the shrink table, not its round's fit
+        candidates[e].fits = base.fits
     say(f"diagnose: verdict {list(base.chosen) or 'none'}")
     return list(base.chosen), candidates, pairs, base.fits
 
@@ -579,13 +581,18 @@ def markdown(js: dict) -> str:
         lines += [f"- round {p['round']} {' + '.join(p['effects'])}: held-out MSE ratio {p['heldout_mse_ratio']:.3f}, "
                   + ("chosen" if p["chosen"] else "supported" if p["accepted"] else f"refused: {p['refused_because']}")
                   for p in js["pairs"]]
-    lines += ["", "Fitted parameters (all tests; jackknife standard error over the folds):", ""]
+    lines += ["", "Fitted parameters (all tests; jackknife standard error over the folds; the verdict's effects "
+                  "fitted together):", ""]
+    fits = {}  # the chosen effects share the verdict's fit: one line
     for e in js["effects"]:
+        fits.setdefault(tuple(e["evidence"]["fitted_with"]), e)
+    for e in sorted(fits.values(), key=lambda e: not e["chosen"]):
         ps = "; ".join(f"{k} = {v['value']:.4g} {v['unit']}" + (f" (se {v['jackknife_se']:.2g})"
                                                                if v["jackknife_se"] is not None else "")
                        + (" **at its bound**" if v["at_bound"] else "")
                        + ("" if v["identified"] else " **not identified**") for k, v in e["params"].items())
-        lines.append(f"- {e['effect']} (fitted with {', '.join(e['evidence']['fitted_with'])}): {ps}")
+        name = "verdict" if e["chosen"] else e["effect"]
+        lines.append(f"- {name} (fitted with {', '.join(e['evidence']['fitted_with'])}): {ps}")
     lines += ["", "## How far it shrinks (mean ISO/TS 18571 overall, held-out)", "",
               "| model | " + " | ".join(f"{w} ms" for w in WINDOWS) + " |", "|---|" + "---|" * len(WINDOWS)]
     for model, row in js["shrink"].items():
