@@ -75,8 +75,8 @@ class Effect:
 
 
 CATALOGUE = {e.name: e for e in (
-    Effect("damping", "viscous crush damping: a crush force proportional to the crush speed, on loading and "
-           "unloading", (
+    Effect("damping", "crush damping: a crush force growing with the crush speed (viscous: in proportion), on "
+           "loading and unloading", (
                Quantity("c", "N s/m", f"damping force per unit crush speed at the reference crush speed "
                         f"{V_REF:g} m/s (the coefficient of a linear law)", headline=True),
                Quantity("quadratic_coefficient", "N s^2/m^2", "damping force per squared crush speed (a "
