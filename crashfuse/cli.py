@@ -122,7 +122,7 @@ def _world_validate(args) -> int:
     from crashfuse.world.validation import N_CAE, exactly_right, validate
 
     table = validate(args.out, effects=args.effects, strengths=args.strengths, seeds=args.seeds,
-                     n_cae=args.n_cae or N_CAE, worlds=args.worlds, pairs=args.pairs)
+                     n_cae=args.n_cae or N_CAE, worlds=args.worlds, pairs=args.pairs, n_jobs=args.jobs)
     runs = table.drop_duplicates(["world", "withheld", "strength", "seed"])
     print(f"{int(runs['first_correct'].sum())}/{len(runs)} campaigns with a right first effect, "
           f"{int(exactly_right(runs).sum())} with exactly the withheld effects -> {args.out}")
@@ -645,6 +645,8 @@ def _add_world_validate(wsub) -> None:
                         "withholds one at a time)")
     s.add_argument("--n-cae", type=_positive, default=None,
                    help="CAE runs per campaign besides the companions (default: the harness's N_CAE)")
+    s.add_argument("--jobs", type=_positive, default=1,
+                   help="campaigns generated and diagnosed at once (worker processes, default 1)")
     s.add_argument("--out", required=True, help="output folder for validation.csv and validation.md")
     s.set_defaults(func=_world_validate)
 

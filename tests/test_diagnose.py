@@ -273,10 +273,11 @@ def test_validation_on_the_second_world(tmp_path):
     35 mph tests only, and the verdict names it; its exponential unloading with a residual set is
     named (the old power law, bounded at n = 6, ran to its bound and was refused); the control
     stays empty. Headlines (the arrested engine mass per label) are scored against the second
-    world's own answer key."""
+    world's own answer key. Two campaigns at once (worker processes), in the spread's order."""
     from crashfuse.world.validation import validate
     table = validate(tmp_path, effects=("powertrain", "unloading"), strengths=("realistic",), seeds=(0,),
-                     worlds=("multibody",), candidates=("powertrain", "unloading", "mass"), progress=None, n_cae=150)
+                     worlds=("multibody",), candidates=("powertrain", "unloading", "mass"), progress=None, n_cae=150,
+                     n_jobs=2)
     runs = table.drop_duplicates("withheld")
     assert list(runs["world"]) == ["multibody"] * 3 and list(runs["verdict"]) == ["powertrain", "unloading", "none"]
     engine = table[table["withheld"] == "powertrain"].set_index("parameter")["true"]

@@ -250,7 +250,8 @@ def test_diagnosis_validation_is_its_own_target_with_the_config_spread(tmp_path)
     assert "validate_diagnosis" not in job_counts(snakemake(tmp_path, "-n", configfile=config).stdout)
     done = snakemake(tmp_path, "-n", "-p", "results/diagnosis/validation.csv", configfile=config)
     assert job_counts(done.stdout) == {"validate_diagnosis": 1}
-    assert "world validate --worlds multibody --strengths realistic subtle --seeds 3 --pairs --n-cae 40" in done.stdout
+    assert ("world validate --worlds multibody --strengths realistic subtle --seeds 3 --pairs --n-cae 40 --jobs "
+            in done.stdout)
 
 
 def test_lint_is_clean_except_the_conda_advice(tmp_path):

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from joblib import Parallel, delayed
 
 from crashfuse.catalogue import EFFECTS
 from crashfuse.diagnosis.diagnose import diagnose
@@ -106,11 +107,13 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
 
 
 def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,), candidates=EFFECTS,
-             progress=print, n_cae: int = N_CAE, worlds=("first",), pairs: bool = False) -> pd.DataFrame:
+             progress=print, n_cae: int = N_CAE, worlds=("first",), pairs: bool = False,
+             n_jobs: int = 1) -> pd.DataFrame:
     """The validation matrix: ``worlds`` x (``effects`` withheld + control, and with ``pairs`` every
     pair of ``effects`` withheld together where the world can) x strengths x seeds,
-    each diagnosed with ``candidates`` on campaigns of ``n_cae`` CAE runs; writes validation.csv and
-    validation.md into ``out``.
+    each diagnosed with ``candidates`` on campaigns of ``n_cae`` CAE runs, ``n_jobs`` campaigns at
+    once (worker processes: the same verdicts with any); writes validation.csv and validation.md
+    into ``out``.
 
     Raises
     ------
@@ -122,13 +125,16 @@ def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,)
             raise InputError(f"unknown world {world!r}: expected one of {', '.join(WORLDS)}", field="worlds")
     say = progress or (lambda line: None)
     rows = []
+    spread = list(_campaigns(worlds, effects, strengths, seeds, pairs))
     with tempfile.TemporaryDirectory(prefix="crashfuse-validate-") as tmp:
-        for world, strength, withheld, seed in _campaigns(worlds, effects, strengths, seeds, pairs):
-            folder = Path(tmp) / f"{world}-{withheld}-{strength}-{seed}"
-            rows += validate_one(withheld, strength, seed, folder, candidates, n_cae=n_cae, world=world)
-            last = rows[-1]
-            say(f"validate {world} {withheld} {strength} seed {seed}: verdict {last['verdict']}, "
-                f"error {last['rel_error']:.2f}, {last['seconds']:.0f} s")
+        done = Parallel(n_jobs=n_jobs, return_as="generator")(
+            delayed(validate_one)(withheld, strength, seed, Path(tmp) / f"{world}-{withheld}-{strength}-{seed}",
+                                  candidates, n_cae=n_cae, world=world)
+            for world, strength, withheld, seed in spread)
+        for (world, strength, withheld, seed), one in zip(spread, done):
+            rows += one
+            say(f"validate {world} {withheld} {strength} seed {seed}: verdict {one[-1]['verdict']}, "
+                f"error {one[-1]['rel_error']:.2f}, {one[-1]['seconds']:.0f} s")
     table = pd.DataFrame(rows, columns=list(COLUMNS))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

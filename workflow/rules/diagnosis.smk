@@ -43,9 +43,10 @@ rule validate_diagnosis:
         n_cae=config["validation"]["n_cae"],
     log:
         f"{RESULTS}/logs/validate_diagnosis.log",
+    threads: 2  # campaigns at once (scaled down to the cores given)
     shell:
         "crashfuse world validate --worlds {params.worlds} --strengths {params.strengths} --seeds {params.seeds} "
-        "{params.pairs} --n-cae {params.n_cae} --out {params.out:q} > {log:q} 2>&1"
+        "{params.pairs} --n-cae {params.n_cae} --jobs {threads} --out {params.out:q} > {log:q} 2>&1"
 
 
 MATRIX = config["validation"]["method"]
