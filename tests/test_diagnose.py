@@ -12,7 +12,7 @@ import pytest
 from crashfuse.catalogue import EFFECTS, V_REF
 from crashfuse.method import effect_fit as ef
 from crashfuse.cli import main
-from crashfuse.diagnosis.diagnose import Candidate, diagnose, write_diagnosis
+from crashfuse.diagnosis.diagnose import Candidate, diagnose, markdown, write_diagnosis
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, permutation_test, sign_test
 from crashfuse.signals.dynamics import State
 from crashfuse.method.laws import decel_fn, headline, parameters
@@ -96,13 +96,18 @@ def test_unloading_law_holds_the_exponential(case):
     np.testing.assert_allclose(got, f_m * np.exp(-u / lam), atol=0.02 * f_m)
 
 
-def test_powertrain_arrest_and_mount_yield(case):
+def _engine(case, f_mount, k_mount):
+    """One test's plant and its decel with a 200 kg powertrain behind a 0.4 m gap on the given mounts."""
     plant = case.plant.subset([7])
     label = plant.labels[plant.group[0]]
     theta = {p.name: np.array([1.0]) for p in parameters("powertrain", plant.labels)}
     theta.update({f"powertrain.mass[{label}]": np.array([200.0]), f"powertrain.gap[{label}]": np.array([0.4]),
-                  "powertrain.f_mount": np.array([5e4]), "powertrain.k_mount": np.array([2.5e6])})
-    fn = decel_fn(plant, ("powertrain",), theta)
+                  "powertrain.f_mount": np.array([f_mount]), "powertrain.k_mount": np.array([k_mount])})
+    return plant, decel_fn(plant, ("powertrain",), theta)
+
+
+def test_powertrain_arrest_and_mount_yield(case):
+    plant, fn = _engine(case, 5e4, 2.5e6)
     m = plant.mass[0]
     before, after = 0.35, 0.55
     assert fn(_state(before, 10.0))[0] == pytest.approx(plant.loading(np.array([before]), 10.0)[0][0], rel=1e-12)
@@ -115,12 +120,8 @@ def test_powertrain_arrest_and_mount_yield(case):
 
 def test_soft_powertrain_mounts_push_back_over_their_whole_travel(case):
     """Mounts that never yield (rubber) return their force along their own stiffness on the spring-back."""
-    plant = case.plant.subset([7])
-    label = plant.labels[plant.group[0]]
-    theta = {p.name: np.array([1.0]) for p in parameters("powertrain", plant.labels)}
-    theta.update({f"powertrain.mass[{label}]": np.array([200.0]), f"powertrain.gap[{label}]": np.array([0.4]),
-                  "powertrain.f_mount": np.array([5e5]), "powertrain.k_mount": np.array([1e6])})
-    fn, cae = decel_fn(plant, ("powertrain",), theta), decel_fn(plant, (), {})
+    plant, fn = _engine(case, 5e5, 1e6)
+    cae = decel_fn(plant, (), {})
     m, s_max = plant.mass[0], 0.55  # 150 mm into the mounts: 150 kN, below the yield force
     for back, mount in ((0.0, 1.5e5), (0.05, 1.0e5), (0.15, 0.0), (0.2, 0.0)):
         st = _state(s_max - back, -1.0, s_max, loading=False)
@@ -314,7 +315,6 @@ def test_paper_campaign_verdict():
     chosen = [e for e in diag.to_json()["effects"] if e["chosen"]]
     assert [sorted(e["evidence"]["fitted_with"]) for e in chosen] == [["powertrain", "strain_rate"]] * 2
     assert chosen[0]["params"] == chosen[1]["params"]
-    from crashfuse.diagnosis.diagnose import markdown
     assert markdown(diag.to_json()).count("- verdict (fitted with") == 1
 
 
@@ -420,7 +420,6 @@ def test_two_effects_that_mask_each_other_are_named_as_a_pair(tmp_path):
     as many folds as it spoils and +mass moves no held-out prediction, so no single effect
     qualifies (the verdict was none); the pair, fitted together, lowers the held-out error on
     nearly every fold and each member is needed beyond the other alone."""
-    from crashfuse.diagnosis.diagnose import markdown
     from crashfuse.io.campaign import read_campaign
     from crashfuse.world.multibody.generate import generate
     from crashfuse.world.multibody.presets import resolve as resolve_second
@@ -448,7 +447,6 @@ def test_an_engine_on_rubber_mounts_leaves_no_gap_for_unloading(tmp_path):
     assert diag.heldout_mse_ratio < 0.25  # 0.41 with the 1 cm mounts
     engine = next(e for e in diag.to_json()["effects"] if e["effect"] == "powertrain")
     assert engine["params"]["powertrain.k_mount"]["value"] < 1e7  # softer than 1 cm at 100 kN
-
 
 
 @pytest.mark.slow
