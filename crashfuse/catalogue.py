@@ -119,7 +119,8 @@ CATALOGUE = {e.name: e for e in (
                         "larger: falls faster at first; without bound: exponential)"),
                Quantity("zero_force_travel_ratio", "-", "travel from maximum crush to zero force, as a multiple "
                         "of the spring-back scale (an exponential law's residual set)"))),
-    Effect("mass", "the decelerating mass exceeds the nominal test weight (ballast, instrumentation, cables)", (
+    Effect("mass", "the decelerating mass exceeds the nominal test weight (ballast, instrumentation, cables), "
+           "carried rigidly or on a compliant link that loads the body late", (
         Quantity("extra", "kg", "mass decelerated beyond the nominal test weight", headline=True),
         Quantity("link_stiffness", "N/m", "stiffness of a compliant link carrying the extra mass"),
         Quantity("link_damping", "N s/m", "viscous damping of that link"))),

@@ -15,7 +15,7 @@ from crashfuse.cli import main
 from crashfuse.diagnosis.diagnose import Candidate, diagnose, markdown, write_diagnosis
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, permutation_test, sign_test
 from crashfuse.signals.dynamics import State
-from crashfuse.method.laws import decel_fn, headline, parameters
+from crashfuse.method.laws import LINK_DAMPING_RATIO, _Link, decel_fn, headline, parameters
 from crashfuse.errors import InputError
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
@@ -40,11 +40,11 @@ def case(control_world):
     return ef.test_case(control_world[0])
 
 
-def _state(s, v, s_max=None, loading=True):
+def _state(s, v, s_max=None, loading=True, step=1):
     s = np.atleast_1d(np.asarray(s, float))
     s_max = s if s_max is None else np.atleast_1d(np.asarray(s_max, float))
     return State(s, np.atleast_1d(np.asarray(v, float)), np.maximum(s_max - s, 0.0), s_max,
-                 np.full(s.shape, loading), 1, 0.0)
+                 np.full(s.shape, loading), step, step * ef.DT)
 
 
 def test_laws_against_closed_forms(case):
@@ -52,20 +52,58 @@ def test_laws_against_closed_forms(case):
     s, v = 0.3, 12.0
     a_cae, a_rest = (x[0] for x in plant.loading(np.array([s]), np.array([v])))  # at this crush speed; at rest
     m = plant.mass[0]
-    base = decel_fn(plant, (), {})(_state(s, v))[0]
+    base = decel_fn(plant, (), {}, ef.DT)(_state(s, v))[0]
     assert base == pytest.approx(a_cae, rel=1e-12)
-    damped = decel_fn(plant, ("damping",), {"damping.c": np.array([4000.0]), "damping.n": np.array([1.0])})(_state(s, v))[0]
+    damped = decel_fn(plant, ("damping",), {"damping.c": np.array([4000.0]), "damping.n": np.array([1.0])}, ef.DT)(_state(s, v))[0]
     assert damped == pytest.approx(a_cae + 4000.0 * v / m, rel=1e-12)  # n = 1: viscous
-    quadratic = decel_fn(plant, ("damping",), {"damping.c": np.array([4000.0]), "damping.n": np.array([2.0])})
+    quadratic = decel_fn(plant, ("damping",), {"damping.c": np.array([4000.0]), "damping.n": np.array([2.0])}, ef.DT)
     assert quadratic(_state(s, v))[0] == pytest.approx(a_cae + 4000.0 / V_REF * v**2 / m, rel=1e-12)
     rebound = quadratic(_state(s, -2.0, s + 0.01, loading=False))[0]  # on the spring-back it opposes the motion
-    assert rebound == pytest.approx(decel_fn(plant, (), {})(_state(s, -2.0, s + 0.01, loading=False))[0]
+    assert rebound == pytest.approx(decel_fn(plant, (), {}, ef.DT)(_state(s, -2.0, s + 0.01, loading=False))[0]
                                     - 4000.0 / V_REF * 4.0 / m, rel=1e-12)
-    heavy = decel_fn(plant, ("mass",), {"mass.extra": np.array([100.0])})(_state(s, v))[0]
-    assert heavy == pytest.approx(a_cae * m / (m + 100.0), rel=1e-12)
+    rigid = {"mass.extra": np.array([100.0]), "mass.k_link": np.array([1e12])}  # the stiff bound: rigid
+    heavy = decel_fn(plant, ("mass",), rigid, ef.DT)(_state(s, v, step=0))[0]
+    assert heavy == pytest.approx(a_cae * m / (m + 100.0), rel=1e-3)
     rate = decel_fn(plant, ("strain_rate",), {"strain_rate.d": np.array([3000.0]),
-                                             "strain_rate.q": np.array([4.0])})(_state(s, v))[0]
+                                             "strain_rate.q": np.array([4.0])}, ef.DT)(_state(s, v))[0]
     assert rate == pytest.approx(a_cae + a_rest * (v / 3000.0) ** 0.25, rel=1e-12)  # the static strength hardens
+
+
+def test_the_mass_link_against_its_closed_form():
+    """A constant force on a body carrying an extra mass on a damped spring: the relative travel is a
+    damped oscillator's step response, ``mu z'' + c z' + k z = mu F / M``; the link force ``k z + c z'``
+    stepped implicitly follows it (first order in dt), and a stiff link is the rigid mass."""
+    m, body, k, f, dt = 100.0, 1500.0, 1e6, 3e5, 1e-5
+    c = 2.0 * LINK_DAMPING_RATIO * np.sqrt(k * m)
+    mu = m * body / (m + body)
+    wn, zeta = np.sqrt(k / mu), c / (2.0 * np.sqrt(k * mu))
+    wd, z_s = wn * np.sqrt(1.0 - zeta**2), mu * f / (body * k)
+    t = np.arange(10001) * dt  # 0.1 s, 1.6 periods
+    decay = np.exp(-zeta * wn * t)
+    z = z_s * (1.0 - decay * (np.cos(wd * t) + zeta * wn / wd * np.sin(wd * t)))
+    zdot = z_s * decay * wn**2 / wd * np.sin(wd * t)
+    link = _Link(np.array([m]), np.array([k]), dt)
+    got = np.array([link.force(i, np.array([f]), np.array([body]))[0] for i in range(t.size)])
+    np.testing.assert_allclose(got, k * z + c * zdot, atol=0.01 * mu * f / body)
+    rigid = _Link(np.array([m]), np.array([1e12]), 1.6e-4)
+    loads = [rigid.force(i, np.array([f]), np.array([body]))[0] for i in range(50)]
+    np.testing.assert_allclose((f - np.array(loads)) / body, f / (body + m), rtol=1e-3)
+    with pytest.raises(ValueError, match="in order"):
+        rigid.force(60, np.array([f]), np.array([body]))
+
+
+def test_a_mass_on_a_compliant_link_is_read_at_its_size(tmp_path):
+    """The second world's attached mass (150 kg on a 10 Hz link, realistic, seed 0): the rigid law read
+    it 15 % light (127 kg); with the link's stiffness fitted it reads the mass and the link."""
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.world.multibody.generate import generate
+    from crashfuse.world.multibody.presets import resolve as resolve_second
+    generate(tmp_path / "c", resolve_second("withheld", withhold="mass"), seed=0, n_cae=N_PAIR_CAE)
+    case = ef.test_case(read_campaign(tmp_path / "c"))
+    fits = ef.fit_folds(case, ("mass",), [list(range(len(case.test_ids)))])
+    got = dict(zip([p.name for p in fits.params], fits.theta[0]))
+    assert got["mass.extra"] == pytest.approx(150.0, rel=0.03)
+    assert got["mass.k_link"] == pytest.approx(5.9e5, rel=0.2)
 
 
 def test_unloading_law(case):
@@ -74,9 +112,9 @@ def test_unloading_law(case):
     f_m = plant.mass[0] * plant.loading(np.array([s_max]), 0.0)[1][0]  # static: the car stopped
     theta = {"unloading.k": np.array([5e7]), "unloading.l0": np.array([0.005]), "unloading.n": np.array([1.5])}
     delta = 1.5 * (0.005 + f_m / 5e7)  # the spring-back: n initial decay lengths
-    got = decel_fn(plant, ("unloading",), theta)(_state(s_max - u, -1.0, s_max, loading=False))[0]
+    got = decel_fn(plant, ("unloading",), theta, ef.DT)(_state(s_max - u, -1.0, s_max, loading=False))[0]
     assert got == pytest.approx(f_m * ((delta - u) / delta) ** 1.5 / plant.mass[0], rel=1e-12)
-    beyond = decel_fn(plant, ("unloading",), theta)(_state(s_max - 1.1 * delta, -1.0, s_max, loading=False))[0]
+    beyond = decel_fn(plant, ("unloading",), theta, ef.DT)(_state(s_max - 1.1 * delta, -1.0, s_max, loading=False))[0]
     assert beyond == 0.0
 
 
@@ -91,7 +129,7 @@ def test_unloading_law_holds_the_exponential(case):
     theta = {"unloading.k": np.array([5e7]), "unloading.l0": np.array([0.004]), "unloading.n": np.array([n_max.upper])}
     lam = 0.004 + f_m / 5e7
     u = np.linspace(0.0, 4 * lam, 9)
-    fn = decel_fn(plant, ("unloading",), theta)
+    fn = decel_fn(plant, ("unloading",), theta, ef.DT)
     got = np.array([fn(_state(s_max - x, -1.0, s_max, loading=False))[0] for x in u]) * plant.mass[0]
     np.testing.assert_allclose(got, f_m * np.exp(-u / lam), atol=0.02 * f_m)
 
@@ -103,7 +141,7 @@ def _engine(case, f_mount, k_mount):
     theta = {p.name: np.array([1.0]) for p in parameters("powertrain", plant.labels)}
     theta.update({f"powertrain.mass[{label}]": np.array([200.0]), f"powertrain.gap[{label}]": np.array([0.4]),
                   "powertrain.f_mount": np.array([f_mount]), "powertrain.k_mount": np.array([k_mount])})
-    return plant, decel_fn(plant, ("powertrain",), theta)
+    return plant, decel_fn(plant, ("powertrain",), theta, ef.DT)
 
 
 def test_powertrain_arrest_and_mount_yield(case):
@@ -121,7 +159,7 @@ def test_powertrain_arrest_and_mount_yield(case):
 def test_soft_powertrain_mounts_push_back_over_their_whole_travel(case):
     """Mounts that never yield (rubber) return their force along their own stiffness on the spring-back."""
     plant, fn = _engine(case, 5e5, 1e6)
-    cae = decel_fn(plant, (), {})
+    cae = decel_fn(plant, (), {}, ef.DT)
     m, s_max = plant.mass[0], 0.55  # 150 mm into the mounts: 150 kN, below the yield force
     for back, mount in ((0.0, 1.5e5), (0.05, 1.0e5), (0.15, 0.0), (0.2, 0.0)):
         st = _state(s_max - back, -1.0, s_max, loading=False)
@@ -146,7 +184,7 @@ def test_fit_recovers_parameters_of_its_own_law(case):
     the fit starts from a viscous one)."""
     rows = np.arange(len(case.test_ids))
     truth = {"damping.c": np.full(rows.size, 3000.0), "damping.n": np.full(rows.size, 2.0),
-             "mass.extra": np.full(rows.size, 150.0)}
+             "mass.extra": np.full(rows.size, 150.0), "mass.k_link": np.full(rows.size, 1e12)}
     from crashfuse.method.laws import simulate
     made = simulate(case.plant, ("damping", "mass"), truth, ef.DT, case.n_steps).decel
     synthetic = ef.TestCase(case.test_ids, case.plant, made, np.ones_like(case.mask), case.time, case.cae_source)

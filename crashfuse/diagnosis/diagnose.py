@@ -47,6 +47,7 @@ from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MPH, MS
 
 THRESHOLD = 0.10  # relative drop of the held-out mean squared error an effect must bring
+RIGID_LINK_HZ = 100.0  # an extra mass whose link rings faster reads as rigid: a CFC 60 pulse (100 Hz) cannot tell
 
 
 @dataclasses.dataclass
@@ -517,7 +518,10 @@ def reading(effect: str, p: dict, case: TestCase) -> str:
                 f"({p['damping.c'] / 1e3:.1f} kN s/m at {V_REF:.0f} m/s) adds about "
                 f"{damping_force(p, v) / mass / G0:.1f} g at first contact at {at}")
     if effect == "mass":
-        return f"the decelerating mass is about {p['mass.extra']:.0f} kg more than the nominal test weight"
+        hz = np.sqrt(p["mass.k_link"] / p["mass.extra"]) / (2 * np.pi)
+        link = ("carried rigidly" if hz >= RIGID_LINK_HZ else
+                f"on a compliant link ({p['mass.k_link'] / 1e6:.2f} kN/mm, {hz:.0f} Hz): it loads the body late")
+        return f"the decelerating mass is about {p['mass.extra']:.0f} kg more than the nominal test weight, {link}"
     if effect == "unloading":
         lam = decay_length(p, F_REF)
         return (f"after maximum crush the force falls along a power law (exponent {p['unloading.n']:.2f}): from "

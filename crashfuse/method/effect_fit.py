@@ -29,6 +29,7 @@ RECORD = 0.1  # s, longest record compared
 FD_STEP = 1e-3  # finite-difference step in log-parameter space
 MAX_ITER = 30
 RTOL = 1e-5  # a set has converged when an accepted step lowers its cost by less than this fraction
+FLAT = 1e-6  # a parameter at a bound with less curvature than this fraction of the normal matrix's trace stays there
 S_HI_FACTOR = 1.6  # CAE tables reach this factor beyond the longest CAE/test crush
 FASTER = 1.2  # impact speed (x v0) of the surrogate curve a rollout meets beyond its CAE run's crush
 MIN_CAE_SPEEDS = 3  # distinct CAE impact speeds needed before the CAE force's rate sensitivity is estimated
@@ -218,16 +219,20 @@ def _levenberg_marquardt(case, effects, params, sets, z):
     """Minimise each set's squared residual over log-parameters ``z`` (n_sets, d); all sets at once."""
     lo, hi = _bounds(params)
     z = np.clip(z, lo, hi)
-    d = z.shape[1]
     lam = np.full(len(sets), 1e-2)
     res, jac = _residuals_and_jacobian(case, effects, params, sets, z)
     cost = np.array([r @ r for r in res])
+    free = np.array([_free(j.T @ j, zi, lo, hi) for j, zi in zip(jac, z)])
     active = np.ones(len(sets), bool)
     for _ in range(MAX_ITER):
         steps = np.zeros_like(z)
         for i in np.flatnonzero(active):
+            f = free[i]
             a, g = jac[i].T @ jac[i], jac[i].T @ res[i]
-            steps[i] = -np.linalg.lstsq(a + lam[i] * np.diag(np.diag(a)) + 1e-12 * np.eye(d) * np.trace(a), g, rcond=None)[0]
+            if not f.all():
+                a, g = a[np.ix_(f, f)], g[f]
+            steps[i, f] = -np.linalg.lstsq(a + lam[i] * np.diag(np.diag(a)) + 1e-12 * np.eye(f.sum()) * np.trace(a), g,
+                                           rcond=None)[0]
         trial = np.clip(z + steps, lo, hi)
         trial_res = _residuals(case, effects, params, sets, trial, np.flatnonzero(active))
         new_cost = np.array([r @ r if r is not None else np.inf for r in trial_res])
@@ -244,6 +249,15 @@ def _levenberg_marquardt(case, effects, params, sets, z):
             res[i], jac[i] = res_new[i], jac_new[i]
     n_res = np.array([case.mask[s].sum() for s in sets])
     return z, cost / n_res
+
+
+def _free(a, z, lo, hi):
+    """Which parameters a fit from ``z`` may move, shape (d,) bool: not one that starts at a bound of its
+    box with a curvature below ``FLAT`` of the normal matrix ``a``'s trace there. The residuals cannot
+    see such a parameter (an extra mass's link started at its rigid bound): Levenberg-Marquardt's
+    damping ``lam diag(a)`` does not hold it, and its step off the bound was a ratio of two roundings
+    that threw the fit into another basin. It stays where it started (another start explores it)."""
+    return ~(((z <= lo) | (z >= hi)) & (np.diag(a) < FLAT * np.trace(a)))
 
 
 def _samples(params, sets, z, which):

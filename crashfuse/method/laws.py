@@ -49,7 +49,13 @@ The laws (each one modifies the balance; their order does not matter):
     beyond: ``F_extra += min(f_mount, k_mount (s - g))`` on loading, unloading elastically from
     its peak. Both are fitted: stiff mounts that yield early return little on the spring-back,
     soft mounts that never yield push the body back over the whole travel (rubber mounts).
-``mass``         The decelerating mass exceeds the nominal test weight: ``M_eff += extra`` (kg).
+``mass``         An extra mass ``m`` (kg) beyond the nominal test weight rides on a link of stiffness
+    ``k`` (N/m) and damping ratio :data:`LINK_DAMPING_RATIO`: the body feels the link force
+    ``L = k z + c z'`` (``z`` the extra mass's travel relative to the body, ``c = 2 zeta sqrt(k m)``),
+    ``F_extra -= L``, while ``z'' = a - L / m``. A stiff link is the rigid limit ``M_eff += m``
+    (ballast, bolted equipment), where the fit starts; a soft one engages the mass late and gives
+    part of its momentum back (a battery or cargo on compliant mounts). Each step is implicit in
+    the link (backward Euler of ``z, z'`` with the body): stable and exactly rigid as ``k`` grows.
 
 Every effect lists its parameters with physical bounds and starting points (:class:`Param`);
 :func:`headline` computes the catalogue's headline quantities from them.
@@ -80,7 +86,9 @@ QUANTITIES = {
     "unloading.l0": "initial_decay_floor",
     "unloading.n": "unloading_exponent",
     "mass.extra": "extra",
+    "mass.k_link": "link_stiffness",
 }
+LINK_DAMPING_RATIO = 0.2  # the extra mass's link: a lightly damped mount, fixed (its stiffness is what the pulse shows)
 RUNS_PER_COEF = 3  # moving CAE runs per regression coefficient before a crush's force-speed fit is used
 
 N_S, N_U = 2048, 512  # loading and unloading table points of a Plant
@@ -329,7 +337,8 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
                 _param("unloading.l0", 1e-4, 0.1, (0.003, 0.01)),
                 _param("unloading.n", 0.3, 30.0, (1.5, 1.0), upper_is_limit=False))  # 30: an exponential
     if effect == "mass":
-        return (_param("mass.extra", 1.0, 0.5 * mass_hint, (50.0, 200.0)),)
+        return (_param("mass.extra", 1.0, 0.5 * mass_hint, (50.0, 200.0)),
+                _param("mass.k_link", 1e4, 1e12, (1e12, 1e6), upper_is_limit=False))  # 1e12: rigid
     per_label = [p for lab in labels for p in (
         _param(f"powertrain.mass[{lab}]", 5.0, 0.45 * mass_hint, (150.0, 250.0)),
         _param(f"powertrain.gap[{lab}]", 0.05, 1.2, (0.35, 0.5)))]
@@ -343,7 +352,7 @@ def _param(name: str, lower: float, upper: float, start: tuple, upper_is_limit: 
     return Param(name, unit, lower, upper, start, upper_is_limit)
 
 
-def decel_fn(plant: Plant, effects, theta: dict):
+def decel_fn(plant: Plant, effects, theta: dict, dt: float):
     """The rollout's deceleration function for CAE + ``effects`` (see the module docstring).
 
     Parameters
@@ -353,14 +362,18 @@ def decel_fn(plant: Plant, effects, theta: dict):
     effects : collection of str
     theta : dict of str to ndarray, shape (n,)
         Every parameter of ``effects`` (names from :func:`parameters`) per sample, SI.
+    dt : float
+        The rollout's step in s (the ``mass`` link is stepped with it).
 
     Returns
     -------
     callable
-        ``State -> ndarray, shape (n,)`` deceleration in m/s^2 for :func:`crashfuse.signals.dynamics.rollout`.
+        ``State -> ndarray, shape (n,)`` deceleration in m/s^2 for :func:`crashfuse.signals.dynamics.rollout`,
+        called once per step in order (the ``mass`` link carries its state from step to step).
     """
     effects = set(effects)
     pt = _powertrain_arrays(plant, theta) if "powertrain" in effects else None
+    link = _Link(theta["mass.extra"], theta["mass.k_link"], dt) if "mass" in effects else None
     unl0 = np.maximum(plant.a_unload[:, 0], 1e-9)
 
     def unloading_force(st: State) -> np.ndarray:
@@ -380,7 +393,7 @@ def decel_fn(plant: Plant, effects, theta: dict):
             force = force + plant.mass * a_rest * rate ** (1.0 / theta["strain_rate.q"])
         if not load.all():  # most of a batched rollout's steps are loading only: no unloading lookups
             force = np.where(load, force, unloading_force(st))
-        mass = plant.mass + (theta["mass.extra"] if "mass" in effects else 0.0)
+        mass = plant.mass
         if "damping" in effects:
             force = force + damping_force(theta, st.v)
         if pt is not None:
@@ -390,8 +403,43 @@ def decel_fn(plant: Plant, effects, theta: dict):
             mount = np.where(load, peak, np.maximum(peak - k_m * st.u, 0.0))
             force = force + np.where(struck, mount, 0.0)
             mass = mass - np.where(struck, m_p, 0.0)
+        if link is not None:
+            force = force - link.force(st.step, force, mass)
         return force / mass
     return decel
+
+
+class _Link:
+    """The ``mass`` law's extra mass ``m`` on a link of stiffness ``k`` (N/m), stepped with the body.
+
+    State: the extra mass's travel ``z`` (m) and speed ``w`` (m/s) relative to the body, forward
+    positive, both 0 at contact. At each step the link force ``L = k z + c w`` is implicit: with
+    the body's deceleration ``a = (F - L) / M`` under the other forces ``F`` (N),
+    ``w1 = w0 + dt (F / M - L / mu)`` (``1 / mu = 1 / m + 1 / M``) and ``z1 = z0 + dt w1`` solve to
+    ``L = mu [z0 + g (w0 + dt F / M)] / [mu / k + g dt]``, ``g = dt + c / k``. As ``k`` grows
+    ``L -> mu F / M`` from rest: the rigid ``a = F / (M + m)``.
+    """
+
+    def __init__(self, m, k, dt):
+        self.m, self.k, self.dt = m, k, dt
+        self.g = dt + 2.0 * LINK_DAMPING_RATIO * np.sqrt(m / k)  # dt + c / k
+        self.step, self.prev, self.cur = -1, None, None
+
+    def force(self, step: int, f: np.ndarray, body: np.ndarray) -> np.ndarray:
+        """The link force on the body (N, forward; it lowers the deceleration) at ``step``, shape (n,)."""
+        if step == 0:
+            self.prev = (0.0, 0.0)
+        elif step == self.step + 1:
+            self.prev = self.cur
+        elif step != self.step:
+            raise ValueError(f"the mass link is stepped in order; got step {step} after {self.step}")
+        z0, w0 = self.prev
+        mu = self.m * body / (self.m + body)
+        drive = w0 + self.dt * f / body
+        pull = (z0 + self.g * drive) / (mu / self.k + self.g * self.dt)  # L / mu: finite for m = 0
+        w1 = drive - self.dt * pull
+        self.cur, self.step = (z0 + self.dt * w1, w1), step
+        return mu * pull
 
 
 def damping_force(params: dict, v):
@@ -421,7 +469,7 @@ def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Tra
     crashfuse.signals.dynamics.Trajectory
         ``n`` samples, ``n_steps + 1`` times from contact, step ``dt`` (s).
     """
-    return rollout(decel_fn(plant, effects, theta), plant.v0, dt, n_steps)
+    return rollout(decel_fn(plant, effects, theta, dt), plant.v0, dt, n_steps)
 
 
 def curve_plant(curves, masses, labels_of, s_hi: float, faster=None, force_rate=None) -> Plant:
