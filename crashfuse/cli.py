@@ -11,6 +11,7 @@ import os
 import sys
 from pathlib import Path
 
+from crashfuse import forkserver
 from crashfuse.catalogue import EFFECTS
 from crashfuse.errors import InputError
 
@@ -379,6 +380,11 @@ def _prepare(args) -> int:
     return 0
 
 
+def _forkserver(args) -> int:
+    forkserver.serve(args.address, while_stdin_open=args.while_stdin_open)
+    return 0
+
+
 def _evaluate(args) -> int:
     from crashfuse.evaluation.loto import evaluate
     from crashfuse.io.campaign import read_campaign
@@ -529,7 +535,7 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (_add_pulse_metrics, _add_iso_score, _add_barrier_model, _add_world, _add_fit, _add_predict,
                 _add_rollout, _add_auto, _add_select, _add_score, _add_evaluate, _add_diagnose, _add_prepare, _add_aggregate, _add_report,
-                _add_plot, _add_track, _add_register):
+                _add_plot, _add_track, _add_register, _add_forkserver):
         add(sub)
     return p
 
@@ -817,6 +823,15 @@ def _add_prepare(sub) -> None:
     s.set_defaults(func=_prepare)
 
 
+def _add_forkserver(sub) -> None:
+    s = sub.add_parser("forkserver", help="serve commands from one process that imported the package once (the "
+                       "workflow's warm start; commands with CRASHFUSE_FORKSERVER=ADDRESS use it)")
+    s.add_argument("address", help="path of the Unix socket to listen at")
+    s.add_argument("--while-stdin-open", action="store_true",
+                   help="stop when standard input closes (started on a pipe: ends with the process that started it)")
+    s.set_defaults(func=_forkserver)
+
+
 def _add_aggregate(sub) -> None:
     s = sub.add_parser("aggregate", help="combine per-fold ISO tables into one iso_table.csv (CAE rows once)")
     s.add_argument("tables", nargs="+", help="per-fold iso_table.csv files")
@@ -926,6 +941,10 @@ def _named_by_flag(err: InputError, args) -> InputError:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None and os.environ.get(forkserver.ADDRESS) and sys.argv[1:2] != ["forkserver"]:
+        code = forkserver.forward(os.environ[forkserver.ADDRESS], sys.argv[1:])
+        if code is not None:
+            return code
     args = None
     try:
         args = _build_parser().parse_args(argv)

@@ -10,15 +10,18 @@ A finished run does nothing the second time; a killed run resumes where it stopp
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import yaml
 
+from crashfuse import forkserver
 from crashfuse.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,6 +97,26 @@ def snakemake_running_in(workdir: Path) -> bool:
     return False
 
 
+@contextlib.contextmanager
+def forkserver_running(log: Path):
+    """A :mod:`crashfuse.forkserver` for the workflow's jobs while the block runs; yields their environment.
+
+    The server starts with one BLAS thread, as Snakemake starts a one-thread job; its jobs find it through
+    ``CRASHFUSE_FORKSERVER`` (until it listens, and if it fails, they run as plain processes).
+    """
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="crashfuse-") as folder, log.open("w") as log_file:
+        address = os.path.join(folder, "forkserver.sock")
+        one_thread = {**os.environ, **dict.fromkeys(forkserver.THREAD_VARIABLES, "1")}
+        server = subprocess.Popen([sys.executable, "-m", "crashfuse", "forkserver", address, "--while-stdin-open"],
+                                  env=one_thread, stdin=subprocess.PIPE, stdout=log_file, stderr=subprocess.STDOUT)
+        try:
+            yield {**os.environ, forkserver.ADDRESS: address}
+        finally:
+            server.stdin.close()  # the server stops at the end of its input
+            server.wait()
+
+
 def summary(results: Path) -> str:
     """The Table 2 of each input mode and the paths of the figures, report and MLflow store.
 
@@ -142,10 +165,11 @@ def main(argv: list[str] | None = None) -> int:
     if release_stale_lock(configfile, workdir):
         print("crashfuse reproduce: removed the lock a killed run left (no Snakemake process works here)")
     t0 = time.perf_counter()
-    for extra in ((), ("--report", str(results / "report.html"))):
-        done = subprocess.run(snakemake_command(configfile, workdir, args.cores, *extra), check=False)
-        if done.returncode:
-            return done.returncode
+    with forkserver_running(results / "logs" / "forkserver.log") as env:
+        for extra in ((), ("--report", str(results / "report.html"))):
+            done = subprocess.run(snakemake_command(configfile, workdir, args.cores, *extra), env=env, check=False)
+            if done.returncode:
+                return done.returncode
     print(f"\ncrashfuse reproduce: workflow complete in {time.perf_counter() - t0:.0f} s\n")
     print(summary(results))
     return 0

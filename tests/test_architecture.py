@@ -17,7 +17,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "crashfuse"
 LAYERS = ("core", "signals", "io", "gp", "method", "evaluation", "reporting", "diagnosis", "world", "cli")
 # The package __init__ runs before any submodule is imported, so it is core like errors and units.
 TOP_LEVEL = {"__init__": "core", "errors": "core", "units": "core", "catalogue": "core",
-             "cli": "cli", "reproduce": "cli", "__main__": "cli"}
+             "cli": "cli", "reproduce": "cli", "__main__": "cli", "forkserver": "cli"}
 # Imports that break the rule on purpose, (importer, imported) -> why.
 EXCEPTIONS = {("crashfuse", "crashfuse.signals.pulse"): "the package re-exports Pulse, its one public type"}
 FLAG = re.compile(r"--[A-Za-z]")
