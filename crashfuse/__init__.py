@@ -10,7 +10,15 @@ Conventions, written down once (see also the README):
 """
 
 from crashfuse.errors import InputError
-from crashfuse.signals.pulse import Pulse
 
 __all__ = ["InputError", "Pulse"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # Pulse on first use: a `crashfuse` command handed to the fork server never imports numpy.
+    if name == "Pulse":
+        from crashfuse.signals.pulse import Pulse
+
+        return Pulse
+    raise AttributeError(f"module 'crashfuse' has no attribute {name!r}")

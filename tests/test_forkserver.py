@@ -94,3 +94,11 @@ def test_a_killed_command_ends_its_child_and_the_server_ends_with_its_input(serv
         assert time.monotonic() < deadline, "the killed command's child lives on"
         time.sleep(0.01)
     assert not (tmp_path / "campaign" / "conditions.csv").exists()  # no campaign written
+
+
+def test_a_command_handed_to_the_server_does_not_import_numpy():
+    """The client's own start-up is what every job still pays: the CLI module without numpy and the rest."""
+    done = subprocess.run([sys.executable, "-c", "import sys, crashfuse.cli; print(sorted(m for m in sys.modules "
+                           "if m.split('.')[0] in {'numpy', 'scipy', 'sklearn', 'pandas', 'matplotlib'}))"],
+                          capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"
