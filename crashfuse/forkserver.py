@@ -154,7 +154,9 @@ def _match_threads(env: dict) -> None:
 
 
 def _terminate_at_end_of_stdin() -> None:
-    sys.stdin.buffer.read()
+    # os.read, not sys.stdin: a child forked meanwhile must not inherit a stdin buffer's lock held here.
+    while os.read(0, 4096):
+        pass
     os.kill(os.getpid(), signal.SIGTERM)
 
 
