@@ -4,7 +4,8 @@
 profile (2 cores) and ``config/config.yaml`` (the embedded default: the world's ``paper``
 campaign, 11 tests x K = 1, 2, 3 x both input modes), then ``snakemake --report``, then prints the
 paper's Table 2 for each input mode and the paths of the figures, the report and the MLflow store.
-A finished run does nothing the second time; a killed run resumes where it stopped.
+A finished run does nothing the second time; a killed run resumes where it stopped. The jobs run as
+children of a :mod:`crashfuse.forkserver` started for the run, which imports the package once for all.
 """
 
 from __future__ import annotations
@@ -114,7 +115,10 @@ def forkserver_running(log: Path):
             yield {**os.environ, forkserver.ADDRESS: address}
         finally:
             server.stdin.close()  # the server stops at the end of its input
-            server.wait()
+            try:
+                server.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                server.kill()
 
 
 def summary(results: Path) -> str:
