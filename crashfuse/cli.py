@@ -941,7 +941,7 @@ def _named_by_flag(err: InputError, args) -> InputError:
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is None and os.environ.get(forkserver.ADDRESS) and sys.argv[1:2] != ["forkserver"]:
+    if argv is None and forkserver.wanted(sys.argv[1:]):
         code = forkserver.forward(os.environ[forkserver.ADDRESS], sys.argv[1:])
         if code is not None:
             return code

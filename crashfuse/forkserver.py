@@ -5,7 +5,7 @@ spent importing numpy, scipy, scikit-learn, pandas and matplotlib again (docs/wo
 ``crashfuse forkserver ADDRESS`` imports them once and listens on a Unix socket. A ``crashfuse`` command that
 finds ``CRASHFUSE_FORKSERVER=ADDRESS`` in its environment (:func:`forward`) hands its arguments, working directory,
 environment and standard streams to the server, which forks a child that runs the command as the process itself
-would have, and the command exits with the child's exit code.
+would have, and the command exits with the child's exit code (:func:`wanted` says when).
 
 To Snakemake the job is still a process of its own: its output goes to its log, its exit code is the command's,
 and killing it ends the child (the child leaves as soon as the command's connection closes). Where no server
@@ -22,7 +22,7 @@ import struct
 import sys
 import threading
 
-__all__ = ["ADDRESS", "PRELOAD", "THREAD_VARIABLES", "forward", "serve"]
+__all__ = ["ADDRESS", "PRELOAD", "THREAD_VARIABLES", "wanted", "forward", "serve"]
 
 ADDRESS = "CRASHFUSE_FORKSERVER"  # environment variable: the server's Unix socket
 # What the workflow's repeated jobs (train, rollout, score, figure, auto) import.
@@ -33,6 +33,12 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "GOTO_NUM_THREADS", "OPENBLAS_NUM_THREADS
                     "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
 _LENGTH = struct.Struct("!Q")  # request length, sent with the standard streams
 _EXIT = struct.Struct("!i")  # the child's exit code
+
+
+def wanted(argv: list[str]) -> bool:
+    """Whether ``crashfuse argv`` should be handed to a server: one is named, the command is not the server
+    itself, and it does not run in a SLURM job (whose work belongs in its allocation, not in a server's child)."""
+    return bool(os.environ.get(ADDRESS)) and argv[:1] != ["forkserver"] and "SLURM_JOB_ID" not in os.environ
 
 
 def forward(address: str, argv: list[str]) -> int | None:
@@ -146,11 +152,11 @@ def _receive_request(conn: socket.socket) -> dict:
 
 def _match_threads(env: dict) -> None:
     """Give the BLAS the thread count the command's environment asks for, as a fresh process would read it."""
-    wanted = env.get("OPENBLAS_NUM_THREADS") or env.get("OMP_NUM_THREADS")
-    if wanted != (os.environ.get("OPENBLAS_NUM_THREADS") or os.environ.get("OMP_NUM_THREADS")):
+    threads = env.get("OPENBLAS_NUM_THREADS") or env.get("OMP_NUM_THREADS")
+    if threads != (os.environ.get("OPENBLAS_NUM_THREADS") or os.environ.get("OMP_NUM_THREADS")):
         from threadpoolctl import threadpool_limits
 
-        threadpool_limits(int(wanted) if wanted and wanted.isdigit() else os.cpu_count())
+        threadpool_limits(int(threads) if threads and threads.isdigit() else os.cpu_count())
 
 
 def _terminate_at_end_of_stdin() -> None:

@@ -102,3 +102,13 @@ def test_a_command_handed_to_the_server_does_not_import_numpy():
                            "if m.split('.')[0] in {'numpy', 'scipy', 'sklearn', 'pandas', 'matplotlib'}))"],
                           capture_output=True, text=True, check=True)
     assert done.stdout.strip() == "[]"
+
+
+def test_only_a_named_server_outside_slurm_jobs_is_used(monkeypatch):
+    monkeypatch.delenv("SLURM_JOB_ID", raising=False)
+    monkeypatch.delenv(forkserver.ADDRESS, raising=False)
+    assert not forkserver.wanted(["fit"])
+    monkeypatch.setenv(forkserver.ADDRESS, "/tmp/some.sock")
+    assert forkserver.wanted(["fit"]) and not forkserver.wanted(["forkserver", "/tmp/other.sock"])
+    monkeypatch.setenv("SLURM_JOB_ID", "42")  # a SLURM job's work stays in its allocation
+    assert not forkserver.wanted(["fit"])
