@@ -1,7 +1,7 @@
 """A warm start for the workflow's many short jobs: a server that imported the package once forks one child per job.
 
 Each ``crashfuse`` job of the workflow is a new Python process, and a quarter of the default run's job time was
-spent importing numpy, scipy, scikit-learn, pandas and matplotlib again (docs/workflow.md, "Where the time goes").
+spent importing numpy, scipy, scikit-learn, pandas and matplotlib again (docs/workflow.md, "Cost").
 ``crashfuse forkserver ADDRESS`` imports them once and listens on a Unix socket. A ``crashfuse`` command that
 finds ``CRASHFUSE_FORKSERVER=ADDRESS`` in its environment (:func:`forward`) hands its arguments, working directory,
 environment and standard streams to the server, which forks a child that runs the command as the process itself
