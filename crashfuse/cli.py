@@ -146,8 +146,9 @@ def _world_validate_method(args) -> int:
 
 def _method_settings(args) -> dict:
     """The MethodConfig settings of ``_add_method_options`` (None: the input mode's default)."""
-    return dict(assignment=args.assignment, extra_inputs=args.extra_inputs, n_grid=args.n_grid,
-                use_companion=args.use_companion, trend=args.trend, pooled=args.pooled, onset=args.onset,
+    return dict(assignment=args.assignment, extra_inputs=args.extra_inputs, cae_decel=args.cae_decel,
+                n_grid=args.n_grid, use_companion=args.use_companion, trend=args.trend, pooled=args.pooled,
+                onset=args.onset,
                 effects=args.effects[0] if args.effects in (["auto"], ["none"]) else tuple(args.effects))
 
 
@@ -500,6 +501,8 @@ def _add_method_options(s) -> None:
     s.add_argument("--use-companion", action="store_true",
                    help="predict a test's condition with its companion CAE run instead of the surrogate")
     s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
+    s.add_argument("--cae-decel", action="store_true",
+                   help="add the CAE deceleration at each point (the crush stage) to the bias inputs")
     s.add_argument("--n-grid", type=_positive, default=200, help="bias points per test per branch (default 200)")
     s.add_argument("--trend", choices=("zero", "constant", "linear"), default=None,
                    help="trend of the bias GPs (default: the input mode's, paper constant, state zero)")
@@ -907,8 +910,8 @@ def _add_register(sub) -> None:
 # (its parameter or MethodConfig field), the command line the flag it came from.
 _METHOD_FLAGS = {"k": "--k", "inputs": "--inputs", "holdout": "--holdout", "random_state": "--seed",
                  "assignment": "--assignment", "use_companion": "--use-companion", "extra_inputs": "--extra-inputs",
-                 "n_grid": "--n-grid", "trend": "--trend", "pooled": "--pooled", "onset": "--onset",
-                 "effects": "--effects"}
+                 "cae_decel": "--cae-decel", "n_grid": "--n-grid", "trend": "--trend", "pooled": "--pooled",
+                 "onset": "--onset", "effects": "--effects"}
 _FLAGS = {
     "fit": _METHOD_FLAGS,
     "rollout": {"n_samples": "--samples", "band": "--band", "test": "--test"},

@@ -258,6 +258,22 @@ def test_sqrt_velocity_column_round_trips(cae):
         bias_columns("state", velocity="log")
 
 
+def test_cae_decel_input_is_the_cae_curve_where_the_bias_is_measured(cae):
+    from crashfuse.units import G0
+    camp = _pair_campaign(cae)
+    data = bias_data(camp, ["T1"], inputs="state", n_grid=80, cae_decel=True)
+    load, unload = data.loading, data.unloading
+    assert load.columns[-1] == "cae_decel_g" and load.X.shape == (80, 6)
+    np.testing.assert_allclose(load.X[:, -1] * G0, cae_loading(load.X[:, 0]), rtol=2e-3)
+    u = unload.X[:, 0]
+    inner = u > 1e-3  # the sampled pulse's peak is its own at u = 0
+    np.testing.assert_allclose(unload.X[inner, -1] * G0, CAE_UNLOAD(u[inner]), atol=1e-6)  # 0 after separation
+    plain = bias_data(camp, ["T1"], inputs="state", n_grid=80)
+    np.testing.assert_array_equal(load.X[:, :-1], plain.loading.X)  # the other inputs unchanged
+    with pytest.raises(InputError, match="CAE deceleration"):
+        bias_inputs(load.columns, [0.1], [4.0], V0, 900.0, 700.0)
+
+
 @pytest.mark.parametrize("velocity", ["linear", "sqrt"])
 def test_nominal_time_is_exact_at_constant_deceleration(velocity):
     v0, a = 15.0, 200.0  # m/s, m/s^2

@@ -230,6 +230,26 @@ def test_state_inputs_predict(campaign, surrogate):
     assert np.all(np.isfinite(pred.decel)) and np.all(pred.decel_lo <= pred.decel_hi)
 
 
+def test_cae_decel_input_at_prediction_is_the_one_learnt_on(campaign, surrogate):
+    # A test's own condition, its companion curve used: the rollout's inputs must be the very
+    # inputs its training rows had, the CAE deceleration included (loading and unloading).
+    from crashfuse.method.model import training_data
+    from crashfuse.method.projection import column_velocity
+
+    config = MethodConfig(k=1, inputs="state", cae_decel=True, use_companion=True, **FAST)
+    m = fit_model(campaign, config, surrogate=surrogate)
+    assert m.columns["loading"][-1] == "cae_decel_g"
+    data = training_data(campaign, ["T04"], config, surrogate)
+    test = campaign.pulses["T04"]
+    cond = Condition(test.v0, test.front_weight, test.rear_weight, test.meta["powertrain"], test.meta["drive"])
+    for branch in ("loading", "unloading"):
+        X = data.branch(branch).X
+        again = m.features(branch, X[:, 0], column_velocity("v_sqrt", X[:, 1]), cond)
+        np.testing.assert_allclose(again, X, rtol=1e-12, atol=1e-12)
+    pred = _at(m, campaign.pulses["T07"], n_samples=50, random_state=0)
+    assert np.all(np.isfinite(pred.decel)) and np.all(pred.decel_lo <= pred.decel_hi)
+
+
 @pytest.mark.parametrize("kw, field", [
     (dict(v0=-1.0), "v0"),
     (dict(front_weight=float("nan")), "front_weight"),

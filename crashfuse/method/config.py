@@ -69,6 +69,9 @@ class MethodConfig:
         Cluster rule of :class:`crashfuse.method.mixture.GMMGPBias`.
     extra_inputs : bool
         Append one-hot powertrain and drive to the bias inputs.
+    cae_decel : bool
+        Append the CAE deceleration at the bias point (g) to the bias inputs: the crush stage, and
+        the force an additive effect is a fraction of (docs/bias-model.md, "The CAE deceleration as an input").
     n_grid : int or None
         Bias points per test per branch after thinning (>= 2; None: no thinning;
         :func:`crashfuse.method.projection.bias_data`).
@@ -111,6 +114,7 @@ class MethodConfig:
     inputs: str = "paper"
     assignment: str = "select"
     extra_inputs: bool = False
+    cae_decel: bool = False
     n_grid: int | None = 200
     use_companion: bool = False
     random_state: int = 0
@@ -139,8 +143,8 @@ class MethodConfig:
         _one_of("target", self.target, TARGETS)
         _one_of("trend", self.trend, TRENDS)
         _one_of("velocity", self.velocity, tuple(VELOCITY))
-        for name in ("extra_inputs", "use_companion", "pooled", "onset", "weights", "calibrate_variance",
-                     "estimate_scatter"):
+        for name in ("extra_inputs", "cae_decel", "use_companion", "pooled", "onset", "weights",
+                     "calibrate_variance", "estimate_scatter"):
             self._set(name, _boolean(name, getattr(self, name)))
         self._set("effects", check_effects(self.effects))
         self._set("n_grid", _integer("n_grid", self.n_grid, 2, "n_grid", optional=True))

@@ -33,14 +33,14 @@ from crashfuse.io.campaign import Campaign
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.effect_fit import faster_curve
 from crashfuse.method.hybrid import AUTO, PhysicsFirst, fit_physics
-from crashfuse.method.projection import (BRANCHES, BiasData, bias_data, bias_inputs, cae_curve, column_velocity,
-                                         nominal_time, training_test)
+from crashfuse.method.projection import (BRANCHES, CAE_COL, BiasData, bias_data, bias_inputs, cae_curve,
+                                         column_velocity, nominal_time, training_test)
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
 from crashfuse.signals.domain import displacement_branches, rebound_work
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
 # are refused: refit); a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 8, "surrogate": 2}
+FORMAT = {"model": 9, "surrogate": 2}
 # What a user does about a file of another format.
 _REFIT = {"model": "refit with `crashfuse fit`", "surrogate": "refit with `crashfuse prepare`"}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
@@ -169,7 +169,8 @@ class FittedModel:
         return Condition(float(v0), float(front_weight), float(rear_weight), powertrain, drive)
 
     def features(self, branch: str, x, v, cond: Condition) -> np.ndarray:
-        """Bias inputs at branch coordinates ``x`` (m) and velocities ``v`` (m/s).
+        """Bias inputs at branch coordinates ``x`` (m) and velocities ``v`` (m/s); a ``cae_decel_g`` input
+        is the deceleration of :meth:`cae_curve` at ``x`` (its loading or unloading branch).
 
         Parameters
         ----------
@@ -182,8 +183,12 @@ class FittedModel:
         ndarray, shape (n, len(columns[branch]))
             In the training columns' order (:func:`crashfuse.method.projection.bias_columns`).
         """
+        a_cae = None
+        if CAE_COL in self.columns[branch]:
+            curve = self.cae_curve(cond)
+            a_cae = curve.loading(x) if branch == "loading" else curve.unloading(x)
         return bias_inputs(self.columns[branch], x, v, cond.v0, cond.front_weight, cond.rear_weight,
-                           cond.powertrain, cond.drive)
+                           cond.powertrain, cond.drive, a_cae)
 
     def x_max(self, branch: str) -> float:
         """Largest branch coordinate (m) in the bias data of ``branch`` (0 without data)."""
@@ -443,7 +448,8 @@ def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CA
     """
     return bias_data(campaign, tests, config.inputs, config.extra_inputs, config.n_grid, surrogate=surrogate,
                      use_companion=True, cae_curves=curves or training_curves(campaign, tests, surrogate, physics),
-                     target=config.target, weights=config.weights, velocity=config.velocity)
+                     target=config.target, weights=config.weights, velocity=config.velocity,
+                     cae_decel=config.cae_decel)
 
 
 def training_curves(campaign: Campaign, tests, surrogate: CAESurrogate, physics: PhysicsFirst | None = None) -> dict:

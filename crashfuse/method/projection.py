@@ -51,6 +51,9 @@ X_COL, V_COL, V0_COL, WF_COL, WR_COL = "x_m", "v_mps", "v0_mps", "front_weight_k
 # hardening laws are (Cowper-Symonds: a power 1/q, q ~ 4-5, of the rate).
 SQRT_V_COL = "v_sqrt"
 VELOCITY = {"linear": V_COL, "sqrt": SQRT_V_COL}
+# The CAE deceleration where the bias is measured (g): the structural stage the crush is in, and the
+# force an additive effect (e.g. damping) is a fraction of in a relative bias.
+CAE_COL = "cae_decel_g"
 
 
 class Curve(Protocol):
@@ -133,7 +136,7 @@ class BranchData:
     columns : tuple of str, length p
         ``x_m`` (s on loading, u on unloading), ``v_mps`` (``state`` mode only), ``v0_mps``,
         ``front_weight_kg``, ``rear_weight_kg``, then one-hot ``powertrain=<level>`` /
-        ``drive=<level>`` columns with ``extra_inputs``.
+        ``drive=<level>`` columns with ``extra_inputs``, then ``cae_decel_g`` with ``cae_decel``.
     scale : ndarray, shape (n,)
         m/s^2 per unit of ``y``: 1 (``absolute``), :func:`bias_scale` of ``a_cae`` (``relative``).
     """
@@ -178,7 +181,7 @@ class BiasData:
 def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper", extra_inputs: bool = False,
               n_grid: int | None = 200, surrogate: CAESurrogate | None = None, use_companion: bool = True,
               cae_curves: Mapping[str, CAECurve] | None = None, target: str = "absolute",
-              weights: bool = True, velocity: str = "linear") -> BiasData:
+              weights: bool = True, velocity: str = "linear", cae_decel: bool = False) -> BiasData:
     """Bias training data from the given tests (a fold's training tests only: no leakage).
 
     Parameters
@@ -208,6 +211,8 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
         with v0 and the powertrain).
     velocity : {"linear", "sqrt"}
         The state mode's velocity column: ``v_mps``, or ``v_sqrt`` = sign(v) sqrt(|v|).
+    cae_decel : bool
+        Include the CAE curve's deceleration at each point (``cae_decel_g``, in g) as an input.
 
     Returns
     -------
@@ -228,16 +233,16 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
     if n_grid is not None and not (isinstance(n_grid, (int, np.integer)) and n_grid >= 2):
         raise InputError(f"expected None or an integer >= 2 points per branch, got {n_grid!r}", field="n_grid")
     categories = _categories(campaign) if extra_inputs else {}
-    columns = bias_columns(inputs, categories, weights, velocity)
+    columns = bias_columns(inputs, categories, weights, velocity, cae_decel)
     parts = {b: [] for b in BRANCHES}
     missing = {}
     for test_id in test_ids:
         test = training_test(campaign, test_id)
         curve = cae_curve(campaign, test, surrogate, use_companion, cae_curves or {})
         for name, rows in _test_rows(test, curve, n_grid, missing, target).items():
-            x, v, bias, scale = rows
+            x, v, bias, scale, a_cae = rows
             X = bias_inputs(columns, x, v, test.v0, test.front_weight, test.rear_weight,
-                            test.meta.get("powertrain"), test.meta.get("drive"))
+                            test.meta.get("powertrain"), test.meta.get("drive"), a_cae)
             parts[name].append((X, bias, np.full(x.size, test_id, dtype=object), scale))
     data = {b: _stack(parts[b], columns) for b in BRANCHES}
     return BiasData(data["loading"], data["unloading"], inputs, categories, missing, target)
@@ -290,20 +295,21 @@ def bias_scale(a_cae) -> np.ndarray:
 
 
 def bias_columns(inputs: str, categories: Mapping[str, Sequence[str]] | None = None,
-                 weights: bool = True, velocity: str = "linear") -> tuple[str, ...]:
+                 weights: bool = True, velocity: str = "linear", cae_decel: bool = False) -> tuple[str, ...]:
     """Input column names for ``inputs`` ('paper' | 'state'), one-hot ``categories``, the axle
-    masses and the state mode's ``velocity`` coordinate ('linear' | 'sqrt')."""
+    masses, the state mode's ``velocity`` coordinate ('linear' | 'sqrt') and the CAE deceleration."""
     if inputs not in INPUTS:
         raise InputError(f"expected one of {INPUTS}, got {inputs!r}", field="inputs")
     if velocity not in VELOCITY:
         raise InputError(f"expected one of {tuple(VELOCITY)}, got {velocity!r}", field="velocity")
     base = (X_COL, VELOCITY[velocity]) if inputs == "state" else (X_COL,)
     one_hot = tuple(f"{c}={lv}" for c, levels in (categories or {}).items() for lv in levels[1:])
-    return (*base, V0_COL, *((WF_COL, WR_COL) if weights else ()), *one_hot)
+    return (*base, V0_COL, *((WF_COL, WR_COL) if weights else ()), *one_hot,
+            *((CAE_COL,) if cae_decel else ()))
 
 
 def bias_inputs(columns: Sequence[str], x, v, v0: float, front_weight: float, rear_weight: float,
-                powertrain: str | None = None, drive: str | None = None) -> np.ndarray:
+                powertrain: str | None = None, drive: str | None = None, a_cae=None) -> np.ndarray:
     """Bias-model inputs in ``columns`` order, for training rows or a rollout state.
 
     Parameters
@@ -318,6 +324,8 @@ def bias_inputs(columns: Sequence[str], x, v, v0: float, front_weight: float, re
         Condition in m/s and kg.
     powertrain, drive : str, optional
         Needed for one-hot columns.
+    a_cae : array_like, shape (m,), optional
+        The CAE deceleration at ``x`` in m/s^2, needed for a ``cae_decel_g`` column.
 
     Returns
     -------
@@ -334,6 +342,10 @@ def bias_inputs(columns: Sequence[str], x, v, v0: float, front_weight: float, re
                 raise InputError("the state inputs need the velocity", field=col)
             vv = np.broadcast_to(np.asarray(v, dtype=float), x.shape)
             out[:, j] = vv if col == V_COL else np.sign(vv) * np.sqrt(np.abs(vv))
+        elif col == CAE_COL:
+            if a_cae is None:
+                raise InputError("the bias inputs include the CAE deceleration; expected it", field=col)
+            out[:, j] = np.broadcast_to(np.asarray(a_cae, dtype=float), x.shape) / G0
         elif col in (V0_COL, WF_COL, WR_COL):
             out[:, j] = {V0_COL: v0, WF_COL: front_weight, WR_COL: rear_weight}[col]
         else:
@@ -384,7 +396,7 @@ def cae_curve(campaign: Campaign, test: Pulse, surrogate, use_companion: bool = 
 
 
 def _test_rows(test: Pulse, curve: CAECurve, n_grid, missing: dict, target: str = "absolute") -> dict[str, tuple]:
-    """Projected and thinned (x, v, y, scale) per branch for one test; records branches with no data."""
+    """Projected and thinned (x, v, y, scale, a_cae) per branch for one test; records branches with no data."""
     br = displacement_branches(test)
     cae = {"loading": _Samples(curve.s, curve.a_loading)}
     if br.unloading is None:
@@ -400,8 +412,9 @@ def _test_rows(test: Pulse, curve: CAECurve, n_grid, missing: dict, target: str 
             missing[f"{test.run_id}/{name}"] = "the test and CAE branches do not overlap"
             continue
         x, v, bias = thin(*rows, n_grid)
-        scale = bias_scale(np.interp(x, side.x, side.decel)) if target == "relative" else np.ones(x.size)
-        out[name] = (x, v, bias / scale, scale)
+        a_cae = np.interp(x, side.x, side.decel)
+        scale = bias_scale(a_cae) if target == "relative" else np.ones(x.size)
+        out[name] = (x, v, bias / scale, scale, a_cae)
     return out
 
 

@@ -34,6 +34,7 @@ def method_args():
     ]
     flags += ["--use-companion"] if METHOD["use_companion"] else []
     flags += ["--extra-inputs"] if METHOD["extra_inputs"] else []
+    flags += ["--cae-decel"] if METHOD["cae_decel"] else []
     flags += [f"--trend {METHOD['trend']}"] if METHOD["trend"] else []
     flags += [] if METHOD["pooled"] is None else ["--pooled" if METHOD["pooled"] else "--no-pooled"]
     flags += [] if METHOD["onset"] is None else ["--onset" if METHOD["onset"] else "--no-onset"]
