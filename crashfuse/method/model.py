@@ -168,15 +168,18 @@ class FittedModel:
                                  field=name)
         return Condition(float(v0), float(front_weight), float(rear_weight), powertrain, drive)
 
-    def features(self, branch: str, x, v, cond: Condition) -> np.ndarray:
+    def features(self, branch: str, x, v, cond: Condition, curve=None) -> np.ndarray:
         """Bias inputs at branch coordinates ``x`` (m) and velocities ``v`` (m/s); a ``cae_decel_g`` input
-        is the deceleration of :meth:`cae_curve` at ``x`` (its loading or unloading branch).
+        is the deceleration of :meth:`cae_curve` at ``x`` (its loading or unloading branch), or of ``curve``,
+        that CAE curve already at hand (anything with ``loading`` and ``unloading``: the rollout's table).
 
         Parameters
         ----------
         branch : {"loading", "unloading"}
         x, v : ndarray, shape (n,)
         cond : Condition
+        curve : CAECurve, optional
+            The CAE curve of ``cond`` when the caller has it (only a ``cae_decel_g`` input reads it).
 
         Returns
         -------
@@ -185,7 +188,7 @@ class FittedModel:
         """
         a_cae = None
         if CAE_COL in self.columns[branch]:
-            curve = self.cae_curve(cond)
+            curve = self.cae_curve(cond) if curve is None else curve
             a_cae = curve.loading(x) if branch == "loading" else curve.unloading(x)
         return bias_inputs(self.columns[branch], x, v, cond.v0, cond.front_weight, cond.rear_weight,
                            cond.powertrain, cond.drive, a_cae)

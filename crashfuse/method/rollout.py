@@ -302,7 +302,7 @@ def _prepare(model, cond, n_samples: int, rng, dt: float, n_steps: int):
     curve = _Tabulated(raw, 2 * GRID_MARGIN * max(model.x_max("loading"), float(raw.s_max), float(raw.s[-1])))
     cae = rollout(_decel_fn(curve, {b: None for b in BRANCHES}), cond.v0, dt, n_steps)
     x_hi = _grid_ends(model, raw, cae)
-    means = {b: _mean_bias(model, b, cond, x_hi[b]) for b in BRANCHES}
+    means = {b: _mean_bias(model, b, cond, x_hi[b], curve) for b in BRANCHES}
     mean_traj = rollout(_decel_fn(curve, means, model.relative), cond.v0, dt, n_steps)
     bounded = _rebound_bounded(model, curve, means["unloading"], mean_traj)
     if bounded is not means["unloading"]:
@@ -335,7 +335,7 @@ def _velocity_grid(branch: str, v0: float) -> np.ndarray:
     return np.linspace(lo, hi, N_V)
 
 
-def _mean_bias(model, branch, cond, x_hi) -> _BranchBias | None:
+def _mean_bias(model, branch, cond, x_hi, curve) -> _BranchBias | None:
     """The GP mean of one branch on its grid (x, and v in state mode)."""
     est = model.bias_.get(branch)
     if est is None:
@@ -343,7 +343,7 @@ def _mean_bias(model, branch, cond, x_hi) -> _BranchBias | None:
     x = np.linspace(0.0, x_hi, N_X)
     v_grid = _velocity_grid(branch, cond.v0) if model.inputs == "state" else np.zeros(1)
     xx, vv = np.meshgrid(x, v_grid, indexing="ij")
-    table = est.predict(model.features(branch, xx.ravel(), vv.ravel(), cond)).reshape(xx.shape)
+    table = est.predict(model.features(branch, xx.ravel(), vv.ravel(), cond, curve)).reshape(xx.shape)
     return _BranchBias(x_hi, table, v_grid)
 
 
@@ -357,7 +357,7 @@ def _drawn_bias(model, branch, cond, mean: _BranchBias | None, path: Trajectory,
         return None
     x = np.linspace(0.0, mean.x_hi, N_X)
     v = _path_velocity(branch, path, x) if model.inputs == "state" else np.zeros_like(x)
-    X = model.features(branch, x, v, cond)
+    X = model.features(branch, x, v, cond, curve)
     est = model.bias_[branch]
     g = est.sample_functions(X, n_samples, rng.randint(2**31 - 1))
     dev = g - est.predict(X)[None, :]
@@ -446,7 +446,7 @@ def decel_scatter(model, curve, path: Trajectory, cond) -> np.ndarray:
         est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
         if est is None or not on.any():
             continue
-        sd = est.scatter_std(model.features(branch, x, v, cond)) * _scale(model, curve, branch, x)
+        sd = est.scatter_std(model.features(branch, x, v, cond, curve)) * _scale(model, curve, branch, x)
         out[on] = np.minimum(sd, _bound(model, branch))
     return out
 
