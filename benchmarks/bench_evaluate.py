@@ -3,7 +3,7 @@ Table-2-shaped ISO/TS 18571 result for both input modes, band coverage and the t
 <= 300 s on 2 jobs, <= 4 GiB per process, coverage 0.90-0.99, each K's margin against CAE).
 
     .venv/bin/python benchmarks/bench_evaluate.py [CAMPAIGN] [--out DIR] [--jobs 2] [--samples 1000]
-                                                  [--use-companion]
+                                                  [--[no-]use-companion]
 
 Without CAMPAIGN the `paper` campaign (seed 0, 1009 CAE runs) is generated in memory.
 """
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=1000)
     ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--inputs", nargs="+", default=["paper", "state"])
-    ap.add_argument("--use-companion", action="store_true")
+    ap.add_argument("--use-companion", action=argparse.BooleanOptionalAction, default=None)
     ap.add_argument("--assignment", choices=("select", "blend"), default="select")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()

@@ -498,8 +498,9 @@ def _add_method_options(s) -> None:
     s.add_argument("--seed", type=_seed, default=0, help="seed of the surrogate, bias models and draws (default 0)")
     s.add_argument("--assignment", choices=("select", "blend"), default="select",
                    help="cluster rule of the bias model (default select)")
-    s.add_argument("--use-companion", action="store_true",
-                   help="predict a test's condition with its companion CAE run instead of the surrogate")
+    s.add_argument("--use-companion", action=argparse.BooleanOptionalAction, default=None,
+                   help="predict a test's condition with its companion CAE run instead of the surrogate "
+                        "(default: the input mode's, paper no, state yes)")
     s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
     s.add_argument("--cae-decel", action="store_true",
                    help="add the CAE deceleration at each point (the crush stage) to the bias inputs")

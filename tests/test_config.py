@@ -21,8 +21,10 @@ def test_unset_mode_settings_take_the_input_modes_defaults(inputs):
 
 def test_the_two_modes_differ_where_the_method_says():
     paper, state = MethodConfig(inputs="paper"), MethodConfig(inputs="state")
-    assert (paper.target, paper.trend, paper.pooled, paper.onset) == ("absolute", "constant", False, False)
-    assert (state.target, state.trend, state.pooled, state.onset) == ("relative", "zero", True, True)
+    assert (paper.target, paper.trend, paper.pooled, paper.onset, paper.use_companion) == (
+        "absolute", "constant", False, False, False)
+    assert (state.target, state.trend, state.pooled, state.onset, state.use_companion) == (
+        "relative", "zero", True, True, True)
 
 
 def test_a_default_config_hands_the_bias_model_its_own_defaults():

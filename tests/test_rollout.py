@@ -69,6 +69,18 @@ def test_zero_bias_reproduces_the_companion_cae_pulse(campaign, model, test_id):
     assert iso_score(cae.time, cae.decel, pred.time, pred.decel)["overall"] > 0.99
 
 
+def test_a_state_fold_corrects_the_held_out_tests_own_cae_run_by_default(campaign, surrogate):
+    # The state mode's default: a held-out test's prediction corrects its companion CAE run, the
+    # curve its CAE row scores; the paper mode's default keeps the surrogate's curve, as published.
+    test, cae = campaign.pulses["T05"], campaign.companion("T05")
+    early = test.time < 0.03  # loading, before any of the curves can stop
+    for inputs, on_run in (("state", True), ("paper", False)):
+        m = fit_model(campaign, MethodConfig(k=1, inputs=inputs, **FAST), holdout="T05", surrogate=surrogate)
+        pred = _at(m, test, n_samples=3, random_state=0)
+        assert m.config.use_companion is on_run
+        assert bool(np.abs(pred.cae_decel - cae.decel)[early].max() < 1e-9 * G) is on_run
+
+
 def test_true_bias_reproduces_the_test(campaign, surrogate):
     # Trained on T04 alone, its own bias is interpolated: the rollout must give T04 back.
     others = [t for t in campaign.tests if t != "T04"]

@@ -116,7 +116,7 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         ``extra_inputs``, ``n_grid``, ``use_companion``, ``target``, ``weights``, ``velocity``, ``trend``,
         ``pooled``, ``onset`` - the state folds' only: the paper inputs carry no time - and the
         GMMGPBias settings such as ``theta_max_candidates`` or ``calibrate_variance``); None for
-        ``target``, ``trend``, ``pooled`` or ``onset`` keeps each input mode's default.
+        ``target``, ``trend``, ``pooled``, ``onset`` or ``use_companion`` keeps each input mode's default.
 
     Returns
     -------

@@ -27,6 +27,7 @@ MODE_DEFAULTS = {
         "trend": "constant",  # as published: the GPs' constant level
         "pooled": False,  # as published: each cluster GP on its own points
         "onset": False,  # the paper inputs carry no velocity, hence no time since contact
+        "use_companion": False,  # as published: a condition's CAE curve from the surrogate G_a
     },
     "state": {
         # a rate effect scales the force, so the bias relative to the CAE deceleration; chosen by
@@ -41,6 +42,9 @@ MODE_DEFAULTS = {
         # onset transients locked in time move with speed in s: the loading branch also corrects its
         # held-out error over the time since contact (docs/bias-model.md, "Onset correction")
         "onset": True,
+        # a held-out test is predicted on its own CAE run, the one its CAE row scores: the fold then
+        # measures the correction, not the surrogate's error there too (docs/decisions.md, section 39)
+        "use_companion": True,
     },
 }
 
@@ -54,7 +58,7 @@ _BIAS_DEFAULTS = GMMGPBias().get_params()
 class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
-    ``target``, ``trend``, ``pooled`` and ``onset`` left as None take the input mode's value
+    ``target``, ``trend``, ``pooled``, ``onset`` and ``use_companion`` left as None take the input mode's value
     (``MODE_DEFAULTS``), so a config always holds the values the fit used. To change the input
     mode of a config, build a new one (``dataclasses.replace`` keeps the old mode's values).
 
@@ -75,9 +79,10 @@ class MethodConfig:
     n_grid : int or None
         Bias points per test per branch after thinning (>= 2; None: no thinning;
         :func:`crashfuse.method.projection.bias_data`).
-    use_companion : bool
+    use_companion : bool or None
         At prediction, use a test's companion CAE run directly when the condition is that test's
-        (the bias data always pair each test with its companion run).
+        (the bias data always pair each test with its companion run); a condition no test has keeps
+        the surrogate's curve.
     random_state : int
         Seeds the surrogate (when the fit makes one) and both bias models (>= 0).
     target : {"absolute", "relative"} or None
@@ -116,7 +121,7 @@ class MethodConfig:
     extra_inputs: bool = False
     cae_decel: bool = False
     n_grid: int | None = 200
-    use_companion: bool = False
+    use_companion: bool | None = None
     random_state: int = 0
     target: str | None = None
     trend: str | None = None

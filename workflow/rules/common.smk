@@ -32,12 +32,12 @@ def method_args():
         f"--n-grid {METHOD['n_grid']}",
         f"--assignment {METHOD['assignment']}",
     ]
-    flags += ["--use-companion"] if METHOD["use_companion"] else []
     flags += ["--extra-inputs"] if METHOD["extra_inputs"] else []
     flags += ["--cae-decel"] if METHOD["cae_decel"] else []
     flags += [f"--trend {METHOD['trend']}"] if METHOD["trend"] else []
-    flags += [] if METHOD["pooled"] is None else ["--pooled" if METHOD["pooled"] else "--no-pooled"]
-    flags += [] if METHOD["onset"] is None else ["--onset" if METHOD["onset"] else "--no-onset"]
+    for key in ("use_companion", "pooled", "onset"):  # None: each input mode's default
+        name = key.replace("_", "-")
+        flags += [] if METHOD[key] is None else [f"--{name}" if METHOD[key] else f"--no-{name}"]
     return " ".join(flags)
 
 
