@@ -228,6 +228,18 @@ def test_larger_k_reads_the_smallest_ks_pooled_gp_in_folds_and_final_models(tmp_
     assert pooled["results/final/state/K2/model.cfmodel"] == "results/final/state/K1/model.cfmodel"
 
 
+@pytest.mark.parametrize("value, flag", [(None, None), (True, "--use-companion"), (False, "--no-use-companion")])
+def test_a_mode_default_is_passed_on_only_when_the_config_sets_it(tmp_path, value, flag):
+    """``method.use_companion: null`` leaves each input mode its own default (no flag); a value reaches every fit."""
+    campaign = _conditions(tmp_path / "lab", ["A1", "A2"])
+    method = {**yaml.safe_load(DEFAULT_CONFIG.read_text())["method"], "use_companion": value}
+    config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)}, ks=[1], method=method)
+    commands = [line for line in snakemake(tmp_path, "-n", "-p", configfile=config).stdout.splitlines()
+                if "crashfuse fit " in line]
+    flags = {re.search(r"--(?:no-)?use-companion\b|$", c).group(0) or None for c in commands}
+    assert len(commands) > 2 * 2 and flags == {flag}  # the folds and the final model(s)
+
+
 def test_user_campaign_with_one_test_is_refused(tmp_path):
     campaign = _conditions(tmp_path / "lab", ["A1"])
     config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)})
