@@ -153,13 +153,11 @@ def _method_settings(args) -> dict:
 
 
 def _fit(args) -> int:
-    from crashfuse.io.campaign import read_campaign
     from crashfuse.method.config import MethodConfig
     from crashfuse.method.model import fit_model
 
     config = MethodConfig(k=args.k, inputs=args.inputs, random_state=args.seed, **_method_settings(args))
-    campaign = read_campaign(args.campaign)
-    surrogate = _read_surrogate(args, campaign)
+    campaign, surrogate = _campaign_and_surrogate(args)
     model = fit_model(campaign, config, holdout=args.holdout, surrogate=surrogate,
                       pooled=_pooled_from(args, campaign, config, surrogate))
     model.save(args.out, surrogate_file=args.surrogate)  # with --surrogate the model refers to its file
@@ -191,25 +189,26 @@ def _pooled_from(args, campaign, config, surrogate):
     return other.all_rows_gps()
 
 
-def _read_surrogate(args, campaign):
-    """The ``--surrogate`` file's CAE surrogate, checked against ``campaign``; None without one."""
+def _campaign_and_surrogate(args):
+    """The campaign of ``args.campaign`` and the ``--surrogate`` file's CAE surrogate checked against it (None
+    without one). A surrogate fitted on the unchanged folder spares parsing the runs a command does not use."""
+    from crashfuse.io.campaign import read_campaign
     from crashfuse.method.model import load_surrogate
 
-    if not args.surrogate:
-        return None
-    surrogate = load_surrogate(args.surrogate)
-    surrogate.check_campaign(campaign, args.surrogate)  # another campaign's would skew every fold silently
-    return surrogate
+    surrogate = load_surrogate(args.surrogate) if args.surrogate else None
+    campaign = read_campaign(args.campaign, known=surrogate and surrogate.campaign_identity())
+    if surrogate is not None:
+        surrogate.check_campaign(campaign, args.surrogate)  # another campaign's would skew every fold silently
+    return campaign, surrogate
 
 
 def _rollout(args) -> int:
     from crashfuse.evaluation.fold import ROLLOUT_SUFFIX, rollout_fold, write_rollout_facts
     from crashfuse.io.atomic import atomic_path
-    from crashfuse.io.campaign import read_campaign
     from crashfuse.method.model import load_model
 
-    campaign = read_campaign(args.campaign)
-    model = load_model(args.model, _read_surrogate(args, campaign))
+    campaign, surrogate = _campaign_and_surrogate(args)
+    model = load_model(args.model, surrogate)
     if model.campaign_hash != campaign.content_hash():
         raise InputError(f"the model was fitted on another campaign ({model.campaign_hash[:12]})", args.model,
                          "campaign_hash")
@@ -236,7 +235,9 @@ def _score(args) -> int:
     campaign, folder = _test_campaign(args), Path(args.fold)
     facts = read_rollout_facts(folder / f"{args.test}{ROLLOUT_SUFFIX}")
     frame = read_prediction_csv(folder / f"{args.test}_prediction.csv")
-    cae = None if campaign.companion(args.test) else cae_pulse(campaign, _read_surrogate(args, campaign), args.test)
+    cae = None
+    if not campaign.companion(args.test):  # the surrogate's curve, checked against the whole campaign
+        cae = cae_pulse(*_campaign_and_surrogate(args), args.test)
     scored = score_fold(campaign, args.test, frame, facts, args.windows, cae)
     write_fold_json(folder / f"{args.test}.fold.json", scored["record"])
     for rows, columns, name in ((scored["cae_iso"] + scored["iso"], list(COLUMNS), "iso_table.csv"),
@@ -388,11 +389,9 @@ def _forkserver(args) -> int:
 
 def _evaluate(args) -> int:
     from crashfuse.evaluation.loto import evaluate
-    from crashfuse.io.campaign import read_campaign
     from crashfuse.reporting.plots import plot_evaluation
 
-    campaign = read_campaign(args.campaign)
-    surrogate = _read_surrogate(args, campaign)
+    campaign, surrogate = _campaign_and_surrogate(args)
     result = evaluate(campaign, ks=args.k, inputs=args.inputs, out=args.out,
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
                       holdout=args.holdout, band=args.band, auto=_auto_arg(args.auto), **_method_settings(args))
@@ -404,10 +403,8 @@ def _evaluate(args) -> int:
 
 def _diagnose(args) -> int:
     from crashfuse.diagnosis.diagnose import diagnose, write_diagnosis
-    from crashfuse.io.campaign import read_campaign
 
-    campaign = read_campaign(args.campaign)
-    surrogate = _read_surrogate(args, campaign)
+    campaign, surrogate = _campaign_and_surrogate(args)
     diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, alpha=args.alpha, move=args.move,
                     k=args.k, inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
                     in_sample=args.in_sample, residual_model=not args.no_residual, n_jobs=args.jobs)

@@ -306,6 +306,48 @@ def test_reading_one_run_and_its_companion(campaign, tmp_path):
     assert err.value.field == "run_id"
 
 
+def test_a_surrogate_of_the_unchanged_folder_spares_parsing_its_runs(campaign, tmp_path, monkeypatch):
+    """``read_campaign(known=...)`` (what a fold job passes from its surrogate) parses a run only when it is used,
+    with the same bits and content hash as a full read; a changed byte in a run it never uses reads all again."""
+    import crashfuse.io.campaign as campaign_module
+
+    folder = write_campaign(campaign, tmp_path / "campaign")
+    whole = read_campaign(folder)
+    known = (whole.source, whole.content_hash())
+    loads = []
+    monkeypatch.setattr(campaign_module, "_load_run", functools.partial(_counted, campaign_module._load_run, loads))
+    lazy = read_campaign(folder, known=known)
+    assert not loads and lazy.content_hash() == known[1] and list(lazy.pulses) == list(whole.pulses)
+    np.testing.assert_array_equal(lazy.companion("T05").decel, whole.companion("T05").decel)
+    assert len(loads) == 1
+    last = folder / "pulses" / f"{whole.cae[-1]}.csv"
+    text = last.read_bytes().rstrip(b"\n")
+    last.write_bytes(text[:-1] + str((int(text[-1:]) + 1) % 10).encode() + b"\n")  # its last digit
+    changed = read_campaign(folder, known=known)
+    assert isinstance(changed.pulses, dict) and changed.source != known[0] and changed.content_hash() != known[1]
+
+
+def _counted(load, calls, *args):
+    calls.append(args)
+    return load(*args)
+
+
+def test_a_test_without_a_companion_is_scored_against_the_surrogate(campaign, tmp_path):
+    """A campaign whose tests name no CAE run: the score job rates CAE by the surrogate fitted on the whole
+    campaign (it once checked the surrogate against the one test it had read, and refused every fold)."""
+    folder = write_campaign(campaign, tmp_path / "campaign")
+    table = pd.read_csv(folder / "conditions.csv", dtype=str, keep_default_na=False)
+    table.assign(cae_run_id="").to_csv(folder / "conditions.csv", index=False)
+    surrogate, model, out = tmp_path / "surrogate.cfmodel", tmp_path / "K1.cfmodel", tmp_path / "fold"
+    assert main(["prepare", str(folder), "--out", str(surrogate)]) == 0
+    assert main(["fit", str(folder), "--k", "1", "--inputs", "paper", "--holdout", "T05", "--surrogate",
+                 str(surrogate), "--n-grid", "40", "--out", str(model)]) == 0
+    assert main(["rollout", str(model), str(folder), "--test", "T05", "--samples", "20", "--out", str(out)]) == 0
+    assert main(["score", str(folder), str(out), "--test", "T05", "--surrogate", str(surrogate),
+                 "--table-dir", str(out)]) == 0
+    assert set(pd.read_csv(out / "iso_table.csv").model) == {"CAE", "K1"}
+
+
 def test_workers_read_the_campaign_once_from_a_pickle_they_remove(campaign, surrogate, tmp_path, monkeypatch):
     """With workers the campaign and surrogate travel once, in a temporary pickle removed afterwards;
     the folds equal those of workers given them with every fold, bit for bit. (In-process folds,

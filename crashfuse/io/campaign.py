@@ -12,8 +12,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 import pandas as pd
@@ -41,16 +42,24 @@ class Campaign:
         rear_weight_kg, powertrain, drive``, optionally ``cae_run_id`` (a test's companion CAE run)
         and ``pulse_path`` (an EV5 or ISO-MME folder or an LS-DYNA binout relative to ``root``, a
         binout with ``lsdyna_source`` and ``lsdyna_units``), plus any extra column.
-    pulses : dict of str to Pulse
+    pulses : mapping of str to Pulse
         The pulse of every run, keyed by run_id, in SI (from first contact on as `read_campaign`
         leaves filtered pulses).
     root : Path or None
         The folder the campaign was read from (resolves ``pulse_path``); None if built in memory.
+    source : str or None
+        :func:`folder_digest` of the folder when the whole campaign was read from it unchanged; None if
+        built in memory or a subset. A surrogate fitted on the campaign records it.
+    known_hash : str or None
+        The content hash, when `read_campaign` found the folder byte-identical to an earlier full read
+        of it (its pulses are then read on first use).
     """
 
     conditions: pd.DataFrame
-    pulses: dict[str, Pulse]
+    pulses: Mapping[str, Pulse]
     root: Path | None = None
+    source: str | None = None
+    known_hash: str | None = dataclasses.field(default=None, repr=False)
 
     def __post_init__(self):
         # The same rules as the reader, so that whatever is in memory can be written and read back.
@@ -128,6 +137,8 @@ class Campaign:
         Reading the same folder twice gives the same hash; changing any value, unit-independent
         of how it was written, changes it.
         """
+        if self.known_hash is not None:
+            return self.known_hash
         h = hashlib.sha256()
         frame = self.conditions.sort_values("run_id", kind="stable")
         frame = frame[sorted(frame.columns)].drop(columns="pulse_path", errors="ignore")
@@ -140,7 +151,8 @@ class Campaign:
         return h.hexdigest()
 
 
-def read_campaign(folder: str | os.PathLike, cfc: int | None = DEFAULT_CFC, runs: Iterable[str] | None = None) -> Campaign:
+def read_campaign(folder: str | os.PathLike, cfc: int | None = DEFAULT_CFC, runs: Iterable[str] | None = None,
+                  known: tuple[str | None, str | None] | None = None) -> Campaign:
     """Read and validate a campaign folder.
 
     Parameters
@@ -154,6 +166,11 @@ def read_campaign(folder: str | os.PathLike, cfc: int | None = DEFAULT_CFC, runs
     runs : iterable of str, optional
         Read only these runs and the companion CAE runs their tests name (e.g. one fold's test for
         its score: a campaign of a thousand CAE runs takes seconds to read). Default every run.
+    known : (str, str), optional
+        ``(source, content_hash)`` of an earlier full read of this folder (what a CAE surrogate fitted
+        on it records). If the folder's :func:`folder_digest` still equals ``source``, nothing else is
+        parsed now: each pulse is read on first use and the content hash is the known one (a fold
+        job needs a dozen of a thousand runs). Otherwise the folder is read as without it.
 
     Returns
     -------
@@ -179,11 +196,67 @@ def read_campaign(folder: str | os.PathLike, cfc: int | None = DEFAULT_CFC, runs
         cfcs = [c for c, k in zip(cfcs, keep) if k]
         frame = frame[keep].reset_index(drop=True)
     rows = frame.to_dict("records")
+    if runs is None and known is not None and known[0] is not None:
+        source = folder_digest(root, rows, cfc)
+        if source == known[0]:
+            by_id = {row["run_id"]: (row, row_cfc) for row, row_cfc in zip(rows, cfcs)}
+            pulses = _LazyPulses(lambda run_id: _load_run(root, path, *by_id[run_id], cfc, {}), by_id)
+            return Campaign(frame, pulses, root, source=source, known_hash=known[1])
     plain = plain_pulse_files(_pulse_file(root, row) for row in rows if is_blank(row.get("pulse_path")))
     pulses = {}
     for row, row_cfc in zip(rows, cfcs):
         pulses[row["run_id"]] = _load_run(root, path, row, row_cfc, cfc, plain)
-    return Campaign(frame, pulses, root)
+    return Campaign(frame, pulses, root, source=None if runs is not None else folder_digest(root, rows, cfc))
+
+
+def folder_digest(root: Path, rows: list[dict], cfc: int | None) -> str | None:
+    """SHA-256 (hex) of a campaign folder's bytes as read with ``cfc``: the conditions file and each row's pulse
+    file (or every file of its ``pulse_path`` folder); None if one cannot be read.
+
+    Stricter than :meth:`Campaign.content_hash` (rewriting a file in other units changes it) and ~15 times
+    cheaper than parsing the runs: equal digests mean the same campaign.
+    """
+    h = hashlib.sha256(f"cfc={cfc}\0".encode())
+    try:
+        h.update((root / CONDITIONS).read_bytes())
+        for row in rows:
+            h.update(f"\0{row['run_id']}\0".encode())
+            for name, file in _source_files(root, row):
+                h.update(f"{name}\0".encode())
+                h.update(file.read_bytes())
+    except OSError:
+        return None
+    return h.hexdigest()
+
+
+def _source_files(root: Path, row: dict) -> list[tuple[str, Path]]:
+    """The files a conditions row's pulse is read from, with their names within its ``pulse_path`` folder."""
+    if is_blank(row.get("pulse_path")):
+        return [("", _pulse_file(root, row))]
+    where = root / row["pulse_path"]
+    if not where.is_dir():
+        return [("", where)]
+    return sorted((p.relative_to(where).as_posix(), p) for p in where.rglob("*") if p.is_file())
+
+
+class _LazyPulses(Mapping):
+    """A campaign's pulses keyed by run_id, each read on first use (read-only)."""
+
+    def __init__(self, load: Callable[[str], Pulse], run_ids: Iterable[str]):
+        self._load, self._ids, self._read = load, dict.fromkeys(run_ids), {}
+
+    def __getitem__(self, run_id: str) -> Pulse:
+        if run_id not in self._read:
+            if run_id not in self._ids:
+                raise KeyError(run_id)
+            self._read[run_id] = self._load(run_id)
+        return self._read[run_id]
+
+    def __iter__(self):
+        return iter(self._ids)
+
+    def __len__(self) -> int:
+        return len(self._ids)
 
 
 def _with_companions(frame, wanted: set, path: Path) -> np.ndarray:

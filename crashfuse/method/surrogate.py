@@ -227,6 +227,9 @@ class CAESurrogate(BaseEstimator):
         The CAE runs fitted; ``n_unloading_`` of them had an unloading branch reaching separation.
     campaign_hash_ : str or None
         :meth:`Campaign.content_hash` of the campaign fitted on; None if fitted from pulses.
+    campaign_source_ : str or None
+        :attr:`Campaign.source` of the campaign fitted on (the digest of its folder's bytes); None if
+        it was built in memory.
     fit_time_ : float
         Wall time of ``fit`` in s.
     """
@@ -272,6 +275,7 @@ class CAESurrogate(BaseEstimator):
         self._fit_unloading(X, branches, rng)
         self.run_ids_ = [p.run_id for p in pulses]
         self.campaign_hash_ = runs.content_hash() if isinstance(runs, Campaign) else None
+        self.campaign_source_ = runs.source if isinstance(runs, Campaign) else None
         self.fit_time_ = time.perf_counter() - t0
         return self
 
@@ -308,6 +312,12 @@ class CAESurrogate(BaseEstimator):
         u_end = float(np.exp(u_scores[-1]))
         s_max = _energy_stop(self.s_grid_, a_load, v0, f"surrogate curve at v0 = {v0:.4g} m/s")
         return CAECurve(self.s_grid_, a_load, self.w_grid_ * u_end, a_unload, s_max, u_end, float(v0))
+
+    def campaign_identity(self) -> tuple[str | None, str | None]:
+        """``(source, content_hash)`` of the campaign fitted on, for ``read_campaign(known=...)``
+        (``source`` None in files written before it was recorded)."""
+        check_is_fitted(self)
+        return getattr(self, "campaign_source_", None), getattr(self, "campaign_hash_", None)
 
     def check_campaign(self, campaign: Campaign, file: str | os.PathLike | None = None) -> None:
         """Refuse to serve ``campaign`` unless this surrogate was fitted on exactly that campaign.
