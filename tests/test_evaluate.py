@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import pickle
 import subprocess
 import sys
 import time
@@ -320,6 +321,9 @@ def test_a_surrogate_of_the_unchanged_folder_spares_parsing_its_runs(campaign, t
     assert not loads and lazy.content_hash() == known[1] and list(lazy.pulses) == list(whole.pulses)
     np.testing.assert_array_equal(lazy.companion("T05").decel, whole.companion("T05").decel)
     assert len(loads) == 1
+    copy = pickle.loads(pickle.dumps(lazy))  # as evaluate's worker processes receive it
+    np.testing.assert_array_equal(copy.pulses["T02"].decel, whole.pulses["T02"].decel)
+    assert copy.content_hash() == known[1] and len(loads) == 2
     last = folder / "pulses" / f"{whole.cae[-1]}.csv"
     text = last.read_bytes().rstrip(b"\n")
     last.write_bytes(text[:-1] + str((int(text[-1:]) + 1) % 10).encode() + b"\n")  # its last digit

@@ -14,7 +14,7 @@ import hashlib
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Iterable
 
 import numpy as np
 import pandas as pd
@@ -199,8 +199,7 @@ def read_campaign(folder: str | os.PathLike, cfc: int | None = DEFAULT_CFC, runs
     if runs is None and known is not None and known[0] is not None:
         source = folder_digest(root, rows, cfc)
         if source == known[0]:
-            by_id = {row["run_id"]: (row, row_cfc) for row, row_cfc in zip(rows, cfcs)}
-            pulses = _LazyPulses(lambda run_id: _load_run(root, path, *by_id[run_id], cfc, {}), by_id)
+            pulses = _LazyPulses(root, path, {row["run_id"]: (row, c) for row, c in zip(rows, cfcs)}, cfc)
             return Campaign(frame, pulses, root, source=source, known_hash=known[1])
     plain = plain_pulse_files(_pulse_file(root, row) for row in rows if is_blank(row.get("pulse_path")))
     pulses = {}
@@ -240,23 +239,25 @@ def _source_files(root: Path, row: dict) -> list[tuple[str, Path]]:
 
 
 class _LazyPulses(Mapping):
-    """A campaign's pulses keyed by run_id, each read on first use (read-only)."""
+    """A campaign folder's pulses keyed by run_id, each read on first use (read-only; pickles with what it read).
 
-    def __init__(self, load: Callable[[str], Pulse], run_ids: Iterable[str]):
-        self._load, self._ids, self._read = load, dict.fromkeys(run_ids), {}
+    ``rows`` maps each run_id to its conditions row and that row's filter class, in table order.
+    """
+
+    def __init__(self, root: Path, conditions: Path, rows: dict, cfc: int | None):
+        self._root, self._conditions, self._rows, self._cfc, self._read = root, conditions, rows, cfc, {}
 
     def __getitem__(self, run_id: str) -> Pulse:
         if run_id not in self._read:
-            if run_id not in self._ids:
-                raise KeyError(run_id)
-            self._read[run_id] = self._load(run_id)
+            row, row_cfc = self._rows[run_id]
+            self._read[run_id] = _load_run(self._root, self._conditions, row, row_cfc, self._cfc, {})
         return self._read[run_id]
 
     def __iter__(self):
-        return iter(self._ids)
+        return iter(self._rows)
 
     def __len__(self) -> int:
-        return len(self._ids)
+        return len(self._rows)
 
 
 def _with_companions(frame, wanted: set, path: Path) -> np.ndarray:
