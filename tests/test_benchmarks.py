@@ -54,3 +54,12 @@ def test_bench_thinning_runs_on_a_tiny_campaign(tiny_campaign, capsys):
     assert by_grid["full"]["rel_data"] == 0 < by_grid[20]["rel_data"] < 1
     assert all(0 <= r["iso"] <= 1 and np.isfinite(r["rel_fit"]) and r["rel_held"] >= 0 for r in thinning)
     assert result["cae_iso"]["T05"] is not None
+
+
+def test_bench_campaign_read_runs_on_a_tiny_campaign(tiny_campaign, capsys):
+    bench = _script("bench_campaign_read")
+    assert bench.main([str(tiny_campaign), "--repeat", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["runs"] == 22 and out["tests"] == 3
+    assert out["full_s"] > 0 and out["lazy_tests_s"] >= out["lazy_open_s"] > 0
+    assert out["ratio"] == pytest.approx(out["full_s"] / out["lazy_tests_s"])
