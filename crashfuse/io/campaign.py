@@ -19,6 +19,7 @@ from typing import Iterable
 import numpy as np
 import pandas as pd
 
+import crashfuse
 from crashfuse.errors import InputError
 from crashfuse.io.checks import prepare_pulse
 from crashfuse.io.conditions import (CANONICAL, CONDITIONS, DEFAULT_CFC, LSDYNA, OPTIONAL, TEXT_REQUIRED,
@@ -170,7 +171,8 @@ def read_campaign(folder: str | os.PathLike, cfc: int | None = DEFAULT_CFC, runs
         ``(source, content_hash)`` of an earlier full read of this folder (what a CAE surrogate fitted
         on it records). If the folder's :func:`folder_digest` still equals ``source``, nothing else is
         parsed now: each pulse is read on first use and the content hash is the known one (a fold
-        job needs a dozen of a thousand runs). Otherwise the folder is read as without it.
+        job needs a dozen of a thousand runs). Otherwise, and with ``runs``, the folder is read as
+        without it.
 
     Returns
     -------
@@ -209,13 +211,13 @@ def read_campaign(folder: str | os.PathLike, cfc: int | None = DEFAULT_CFC, runs
 
 
 def folder_digest(root: Path, rows: list[dict], cfc: int | None) -> str | None:
-    """SHA-256 (hex) of a campaign folder's bytes as read with ``cfc``: the conditions file and each row's pulse
-    file (or every file of its ``pulse_path`` folder); None if one cannot be read.
+    """SHA-256 (hex) of a campaign folder's bytes as this crashfuse version reads them with ``cfc``: the conditions
+    file and each row's pulse file (or every file of its ``pulse_path`` folder); None if one cannot be read.
 
-    Stricter than :meth:`Campaign.content_hash` (rewriting a file in other units changes it) and ~15 times
+    Stricter than :meth:`Campaign.content_hash` (rewriting a file in other units changes it) and several times
     cheaper than parsing the runs: equal digests mean the same campaign.
     """
-    h = hashlib.sha256(f"cfc={cfc}\0".encode())
+    h = hashlib.sha256(f"crashfuse {crashfuse.__version__}\0cfc={cfc}\0".encode())
     try:
         h.update((root / CONDITIONS).read_bytes())
         for row in rows:
