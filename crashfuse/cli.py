@@ -407,10 +407,39 @@ def _diagnose(args) -> int:
     campaign, surrogate = _campaign_and_surrogate(args)
     diag = diagnose(campaign, effects=args.effects, threshold=args.threshold, alpha=args.alpha, move=args.move,
                     k=args.k, inputs=args.inputs, n_samples=args.samples, random_state=args.seed, surrogate=surrogate,
-                    in_sample=args.in_sample, residual_model=not args.no_residual, n_jobs=args.jobs)
+                    in_sample=args.in_sample, residual_model=not args.no_residual, n_jobs=args.jobs,
+                    fold_models=_fold_models(args, campaign, surrogate))
     out = write_diagnosis(diag, args.out, campaign)
     print(f"verdict: {', '.join(diag.verdict) or 'none'} -> {out / 'diagnosis.md'}")
     return 0
+
+
+def _fold_models(args, campaign, surrogate) -> dict | None:
+    """``--fold-models`` by held-out test, each checked: this campaign, one held-out test, every test once,
+    the K and input mode of ``--k`` and ``--inputs``, no effect laws."""
+    from crashfuse.method.model import load_model
+
+    if not args.fold_models:
+        return None
+    out = {}
+    for path in args.fold_models:
+        model = load_model(path, surrogate)
+        if model.campaign_hash != campaign.content_hash():
+            raise InputError(f"the model was fitted on another campaign ({model.campaign_hash[:12]})", path,
+                             "campaign_hash")
+        if len(model.holdout) != 1 or model.holdout[0] in out:
+            raise InputError(f"expected one fold model per test, each fitted without its test; this one holds out "
+                             f"{model.holdout}", path, "holdout")
+        config = model.config
+        if (config.k, config.inputs) != (args.k, args.inputs) or config.effects:
+            raise InputError(f"expected the GMM-GPR alone with K = {args.k} and {args.inputs} inputs (--k, --inputs), "
+                             f"got K = {config.k}, {config.inputs} inputs, effects {config.effects or 'none'}", path,
+                             "config")
+        out[model.holdout[0]] = model
+    missing = [t for t in campaign.tests if t not in out]
+    if missing:
+        raise InputError(f"expected a fold model for every test; none for {missing}", args.fold_models[0], "holdout")
+    return out
 
 
 def _aggregate(args) -> int:
@@ -809,6 +838,10 @@ def _add_diagnose(sub) -> None:
     s.add_argument("--seed", type=_seed, default=0, help="seed (default 0)")
     s.add_argument("--in-sample", action="store_true", help="allow a single test (no hold-out; evidence in-sample)")
     s.add_argument("--no-residual", action="store_true", help="skip the GMM-GPR rows of the shrink table (faster)")
+    s.add_argument("--fold-models", nargs="+", metavar="MODEL",
+                   help="the GMM-GPR alone's fold models, one per test fitted without it with --k and --inputs "
+                        "(e.g. the workflow's): rolled out instead of refitted, their settings used for the "
+                        "CAE + effects + GMM-GPR folds")
     s.add_argument("--jobs", type=_positive, default=2,
                    help="worker processes for a round's candidate effects and the shrink table's GMM-GPR "
                         "folds (default 2)")
@@ -918,7 +951,8 @@ _FLAGS = {
     "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out", "auto": "--auto"},
     "predict": {"n_samples": "--samples", "random_state": "--seed", "band": "--band"},
     "diagnose": {"effects": "--effects", "threshold": "--threshold", "alpha": "--alpha", "move": "--move",
-                 "k": "--k", "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed"},
+                 "k": "--k", "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed",
+                 "fold_models": "--fold-models"},
     "report": {"score": "--score"},
     "plot summary": {"score": "--score", "window": "--window"},
     "world generate": {"preset": "--preset", "withhold": "--withhold", "strength": "--strength",

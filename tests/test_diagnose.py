@@ -17,6 +17,9 @@ from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, permu
 from crashfuse.signals.dynamics import State
 from crashfuse.method.laws import LINK_DAMPING_RATIO, _Link, decel_fn, headline, parameters
 from crashfuse.errors import InputError
+from crashfuse.method.config import MethodConfig
+from crashfuse.method.model import fit_model
+from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
 from crashfuse.world.validation import true_headline
@@ -267,6 +270,25 @@ def test_the_shrink_tables_gmm_gpr_rows_are_the_same_on_any_number_of_workers(da
         rows = shrink[0][shrink[0].model == model]
         assert sorted(rows.test_id) == sorted(t for t in tests for _ in range(3)), model
         assert rows.overall.between(0, 1).all()
+
+
+def test_the_gmm_gpr_rows_from_given_fold_models_are_those_it_fits(damping_world):
+    """Fold models fitted elsewhere (the workflow's, with the scatter refits) give the shrink table it fits
+    itself: the rows score the mean, which the scatter does not move. Models of another K are refused."""
+    campaign, _ = damping_world
+    tests = campaign.tests[::4]
+    small = campaign.subset(tests + [campaign.companion(t).run_id for t in tests] + campaign.cae)
+    surrogate = CAESurrogate(random_state=0).fit(small)
+    said = []
+    kw = dict(effects=("damping",), n_samples=20, surrogate=surrogate, regions=False, progress=said.append)
+    folds = {t: fit_model(small, MethodConfig(k=1, inputs="state"), holdout=t, surrogate=surrogate) for t in tests}
+    own, given = (diagnose(small, fold_models=f, **kw).shrink for f in (None, folds))
+    assert sum("from the given fold models" in line for line in said) == 1  # rolled out, not refitted
+    pd.testing.assert_frame_equal(own, given, check_exact=False, rtol=0, atol=1e-9)
+    assert set(given.model) == {"CAE", "CAE+effects", "GMM-GPR", "CAE+effects+GMM-GPR"}
+    with pytest.raises(InputError, match="K = 2") as err:
+        diagnose(small, fold_models=folds, k=2, **kw)
+    assert err.value.field == "fold_models"
 
 
 def test_headlines():

@@ -240,6 +240,18 @@ def test_a_mode_default_is_passed_on_only_when_the_config_sets_it(tmp_path, valu
     assert len(commands) > 2 * 2 and flags == {flag}  # the folds and the final model(s)
 
 
+@pytest.mark.parametrize("tests, reused", [([], True), (["A1", "A2"], False)])
+def test_the_diagnosis_rolls_out_the_state_folds_when_they_cover_every_test(tmp_path, tests, reused):
+    """With every test held out in turn the diagnose job takes the state K1 fold models (`--fold-models`,
+    waiting for them) instead of refitting its GMM-GPR rows; with a chosen list of tests it fits its own."""
+    campaign = _conditions(tmp_path / "lab", ["A1", "A2"])
+    config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)}, tests=tests, ks=[1, 2])
+    out = snakemake(tmp_path, "-n", "-p", configfile=config).stdout
+    command = next(line for line in out.splitlines() if "crashfuse diagnose " in line)
+    models = [f"results/folds/state/K1/{t}/model.cfmodel" for t in ("A1", "A2")]
+    assert (f"--fold-models {' '.join(models)} " in command) is reused and ("--fold-models" in command) is reused
+
+
 def test_user_campaign_with_one_test_is_refused(tmp_path):
     campaign = _conditions(tmp_path / "lab", ["A1"])
     config = write_config(tmp_path / "c.yaml", campaign={"path": str(campaign)})

@@ -42,7 +42,9 @@ from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import Campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.signals.pulse import Pulse
+from crashfuse.evaluation.fold import cae_pulse, rollout_fold, score_fold
 from crashfuse.evaluation.iso_table import SCORES, WINDOWS, window_bounds
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MPH, MS
 
@@ -121,7 +123,7 @@ class Diagnosis:
 def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, alpha: float = ALPHA,
              move: float = MOVE, k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
              surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,
-             regions: bool = True, n_jobs: int = 1, progress=print) -> Diagnosis:
+             fold_models: dict | None = None, regions: bool = True, n_jobs: int = 1, progress=print) -> Diagnosis:
     """Diagnose the gap between a campaign's CAE runs and its tests.
 
     Parameters
@@ -149,6 +151,12 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
         Allow a single-test campaign: evidence is then in-sample (no hold-out), flagged.
     residual_model : bool
         Compute the two GMM-GPR rows of the shrink table (the slow part).
+    fold_models : dict of str to FittedModel, optional
+        The GMM-GPR alone's fold models, each test's fitted without it with ``k`` and ``inputs`` (the
+        workflow's folds): its rows are rolled out from them instead of refitted, and the CAE + effects
+        + GMM-GPR folds take their method settings. Default: both fitted here with the input mode's
+        defaults. The mean, all the rows score, does not depend on the test-to-test scatter, which
+        neither needs.
     regions : bool
         Locate the gap (:func:`crashfuse.diagnosis.gap.locate_gap`, with the same ``k``); needs two tests.
     n_jobs : int
@@ -177,8 +185,8 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     chosen, candidates, pairs, current = _select(case, sets, cae, effects, rule, n_jobs, say)
     preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
              "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
-    shrink = _shrink(campaign, case, preds, current, k, inputs, n_samples, random_state, surrogate,
-                     holdout and residual_model, n_jobs, say)
+    residual = _residual_config(k, inputs, random_state, fold_models) if holdout and residual_model else None
+    shrink = _shrink(campaign, case, preds, current, residual, fold_models, n_samples, surrogate, n_jobs, say)
     settings = dict(effects=list(effects), threshold=threshold, alpha=alpha, move=move, k=k, inputs=inputs,
                     n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware)
     gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
@@ -396,25 +404,53 @@ def _rms_g(mse: np.ndarray) -> float:
     return float(np.sqrt(mse.mean()) / G0)
 
 
-def _shrink(campaign, case, preds, fits, k, inputs, n_samples, random_state, surrogate, residual, n_jobs, say):
+def _shrink(campaign, case, preds, fits, config, fold_models, n_samples, surrogate, n_jobs, say):
+    """The shrink table's rows: CAE and CAE + effects, and with a residual ``config`` the GMM-GPR alone
+    and on CAE + effects (leave-one-test-out)."""
     rows = []
     for model, decel in preds.items():
         for i, t in enumerate(case.test_ids):
             rows += _iso_rows(campaign.pulses[t], case.time, decel[i], t, model)
-    if residual:
+    if config is not None:
         from crashfuse.evaluation.loto import evaluate
-        label = f"K{k}"
-        say(f"diagnose: GMM-GPR alone (leave-one-test-out), {n_jobs} jobs")
-        quick = dict(ks=(k,), inputs=(inputs,), n_samples=n_samples, random_state=random_state, surrogate=surrogate,
-                     progress=None, use_companion=True,
-                     estimate_scatter=False)  # only the mean is scored here: no test-to-test scatter needed
-        rows += _relabel(evaluate(campaign, n_jobs=n_jobs, **quick).iso_table, label, "GMM-GPR")
+        label = f"K{config.k}"
+        quick = dict(ks=(config.k,), inputs=(config.inputs,), n_samples=n_samples, random_state=config.random_state,
+                     surrogate=surrogate, progress=None,
+                     **{name: value for name, value in config.as_dict().items()
+                        if name not in ("k", "inputs", "random_state")})
+        if fold_models:
+            say("diagnose: GMM-GPR alone (leave-one-test-out), from the given fold models")
+            rows += [row for t in case.test_ids for row in _model_fold(campaign, fold_models[t], t, n_samples,
+                                                                      surrogate, label)]
+        else:
+            say(f"diagnose: GMM-GPR alone (leave-one-test-out), {n_jobs} jobs")
+            rows += _relabel(evaluate(campaign, n_jobs=n_jobs, **quick).iso_table, label, "GMM-GPR")
         say(f"diagnose: CAE + effects + GMM-GPR residual (leave-one-test-out), {n_jobs} jobs")
         folds = Parallel(n_jobs=n_jobs)(delayed(_effects_fold)(campaign, case, fits, i, quick)
                                         for i in range(len(case.test_ids)))
         for iso in folds:
             rows += _relabel(iso, label, "CAE+effects+GMM-GPR")
     return pd.DataFrame(rows, columns=["test_id", "model", "window_ms", *SCORES])
+
+
+def _residual_config(k: int, inputs: str, random_state: int, fold_models: dict | None) -> MethodConfig:
+    """The GMM-GPR residual model's settings: the fold models' (all alike), else the input mode's defaults
+    on the test's own CAE run; without the scatter refits (the rows score the mean only)."""
+    if not fold_models:
+        return MethodConfig(k=k, inputs=inputs, random_state=random_state, use_companion=True, estimate_scatter=False)
+    configs = {dataclasses.replace(m.config, estimate_scatter=False) for m in fold_models.values()}
+    config = configs.pop()
+    if configs or (config.k, config.inputs) != (k, inputs) or config.effects:
+        raise InputError(f"expected fold models of the GMM-GPR alone with K = {k} and {inputs} inputs, all with the "
+                         "same settings", field="fold_models")
+    return config
+
+
+def _model_fold(campaign, model, test_id, n_samples, surrogate, label) -> list[dict]:
+    """The ISO rows of a fold model's prediction of its held-out test, as ``evaluate`` scores a fold."""
+    pred, facts = rollout_fold(model, campaign, test_id, n_samples)
+    iso = score_fold(campaign, test_id, pred.frame(), facts, cae=cae_pulse(campaign, surrogate, test_id))["iso"]
+    return _relabel(pd.DataFrame(iso), label, "GMM-GPR")
 
 
 def _effects_fold(campaign, case, fits, fold, quick) -> pd.DataFrame:

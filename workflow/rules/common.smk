@@ -17,6 +17,7 @@ RESULTS = config["results"]
 GENERATED = config["campaign"]["path"] is None
 CAMPAIGN = f"{RESULTS}/paper" if GENERATED else config["campaign"]["path"]
 METHOD = config["method"]
+DIAG = config["diagnosis"]
 # The auto model chooses among the state folds (crashfuse.evaluation.fold.AUTO_INPUTS; docs/decisions.md 23).
 AUTO_INPUTS = ["state"]
 if config["auto"] and not set(AUTO_INPUTS) <= set(config["inputs"]):
@@ -138,6 +139,19 @@ def fold_files(pattern):
     tests = read_tests(campaign_dir())
     out = expand(pattern, inputs=config["inputs"], model=[f"K{k}" for k in config["ks"]], test=tests)
     return out + (expand(pattern, inputs="auto", model="auto", test=tests) if config["auto"] else [])
+
+
+def diagnosis_fold_models(wildcards):
+    """The state folds of the diagnosis' K, whose GMM-GPR rows it then rolls out instead of refitting them:
+    when the workflow fits them for every test (config `tests` empty); else nothing (it fits its own)."""
+    if not (DIAG["residual"] and "state" in config["inputs"] and DIAG["k"] in config["ks"] and not config["tests"]):
+        return []
+    return expand(fold_path("model.cfmodel"), inputs="state", model=f"K{DIAG['k']}", test=read_tests(campaign_dir()))
+
+
+def fold_models_flag(wildcards, input):
+    """`--fold-models MODEL...` when the job reads the workflow's fold models."""
+    return f"--fold-models {' '.join(shlex.quote(m) for m in input.fold_models)}" if input.fold_models else ""
 
 
 PREDICT = config["predictions"]

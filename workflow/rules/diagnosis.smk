@@ -2,13 +2,12 @@
 # withheld-effect validation matrix (`crashfuse world validate`, the one reader of world.json)
 # and the method validation matrix (`crashfuse world validate-method`).
 
-DIAG = config["diagnosis"]
-
 
 rule diagnose:
     input:
         campaign=campaign_dir,
         surrogate=f"{RESULTS}/surrogate.cfmodel",
+        fold_models=diagnosis_fold_models,
     output:
         json=f"{RESULTS}/diagnosis/diagnosis.json",
         markdown=report(f"{RESULTS}/diagnosis/diagnosis.md", category="Diagnosis"),
@@ -20,6 +19,7 @@ rule diagnose:
             f"--threshold {DIAG['threshold']} --k {DIAG['k']} --samples {DIAG['samples']} "
             f"--seed {METHOD['seed']}" + ("" if DIAG["residual"] else " --no-residual")
         ),
+        fold_models=fold_models_flag,
     log:
         f"{RESULTS}/logs/diagnose.log",
     benchmark:
@@ -27,7 +27,7 @@ rule diagnose:
     threads: 1  # beside the folds; --set-threads diagnose=2 on a machine of its own
     shell:
         "crashfuse diagnose {input.campaign:q} --surrogate {input.surrogate:q} --effects {params.effects} --jobs {threads} "
-        "{params.flags} --out {params.out:q} > {log:q} 2>&1"
+        "{params.flags} {params.fold_models} --out {params.out:q} > {log:q} 2>&1"
 
 
 rule validate_diagnosis:
