@@ -141,12 +141,22 @@ def fold_files(pattern):
     return out + (expand(pattern, inputs="auto", model="auto", test=tests) if config["auto"] else [])
 
 
+# The diagnosis rolls out the state folds of its K instead of refitting its GMM-GPR rows when the workflow
+# fits them for every test (config `tests` empty); else it fits its own.
+DIAGNOSIS_READS_FOLDS = (DIAG["enabled"] and DIAG["residual"] and "state" in config["inputs"]
+                         and DIAG["k"] in config["ks"] and not config["tests"])
+
+
 def diagnosis_fold_models(wildcards):
-    """The state folds of the diagnosis' K, whose GMM-GPR rows it then rolls out instead of refitting them:
-    when the workflow fits them for every test (config `tests` empty); else nothing (it fits its own)."""
-    if not (DIAG["residual"] and "state" in config["inputs"] and DIAG["k"] in config["ks"] and not config["tests"]):
+    """The fold models the diagnosis reads (`crashfuse diagnose --fold-models`), or nothing."""
+    if not DIAGNOSIS_READS_FOLDS:
         return []
     return expand(fold_path("model.cfmodel"), inputs="state", model=f"K{DIAG['k']}", test=read_tests(campaign_dir()))
+
+
+def train_priority(wildcards):
+    """The folds the diagnosis reads first: it is the longest job, and started last it runs alone."""
+    return int(DIAGNOSIS_READS_FOLDS and wildcards.inputs == "state" and wildcards.model == f"K{DIAG['k']}")
 
 
 def fold_models_flag(wildcards, input):

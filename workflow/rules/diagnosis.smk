@@ -25,6 +25,7 @@ rule diagnose:
     benchmark:
         f"{RESULTS}/benchmarks/diagnose.tsv"
     threads: 1  # beside the folds; --set-threads diagnose=2 on a machine of its own
+    priority: 1  # as soon as its inputs exist: the longest job, run alone at the end it would idle a core
     shell:
         "crashfuse diagnose {input.campaign:q} --surrogate {input.surrogate:q} --effects {params.effects} --jobs {threads} "
         "{params.flags} {params.fold_models} --out {params.out:q} > {log:q} 2>&1"

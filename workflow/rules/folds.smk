@@ -33,6 +33,7 @@ rule train:
         pooled=pooled_flag,
     group:
         FOLD_GROUP
+    priority: train_priority
     log:
         f"{RESULTS}/logs/folds/{{inputs}}/{{model}}/{{test}}/train.log",
     benchmark:
