@@ -417,6 +417,7 @@ def _diagnose(args) -> int:
 def _fold_models(args, campaign, surrogate) -> dict | None:
     """``--fold-models`` by held-out test, each checked: this campaign, one held-out test, every test once,
     the K and input mode of ``--k`` and ``--inputs``, no effect laws."""
+    from crashfuse.diagnosis.diagnose import residual_fold_problem
     from crashfuse.method.model import load_model
 
     if not args.fold_models:
@@ -430,11 +431,9 @@ def _fold_models(args, campaign, surrogate) -> dict | None:
         if len(model.holdout) != 1 or model.holdout[0] in out:
             raise InputError(f"expected one fold model per test, each fitted without its test; this one holds out "
                              f"{model.holdout}", path, "holdout")
-        config = model.config
-        if (config.k, config.inputs) != (args.k, args.inputs) or config.effects:
-            raise InputError(f"expected the GMM-GPR alone with K = {args.k} and {args.inputs} inputs (--k, --inputs), "
-                             f"got K = {config.k}, {config.inputs} inputs, effects {config.effects or 'none'}", path,
-                             "config")
+        problem = residual_fold_problem(model.config, args.k, args.inputs)
+        if problem:
+            raise InputError(f"{problem} (--k, --inputs)", path, "config")
         out[model.holdout[0]] = model
     missing = [t for t in campaign.tests if t not in out]
     if missing:

@@ -42,7 +42,6 @@ from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import Campaign
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.signals.pulse import Pulse
-from crashfuse.evaluation.fold import cae_pulse, rollout_fold, score_fold
 from crashfuse.evaluation.iso_table import SCORES, WINDOWS, window_bounds
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.surrogate import CAESurrogate
@@ -440,16 +439,25 @@ def _residual_config(k: int, inputs: str, random_state: int, fold_models: dict |
         return MethodConfig(k=k, inputs=inputs, random_state=random_state, use_companion=True, estimate_scatter=False)
     configs = {dataclasses.replace(m.config, estimate_scatter=False) for m in fold_models.values()}
     config = configs.pop()
-    if configs or (config.k, config.inputs) != (k, inputs) or config.effects:
-        raise InputError(f"expected fold models of the GMM-GPR alone with K = {k} and {inputs} inputs, all with the "
-                         "same settings", field="fold_models")
+    problem = residual_fold_problem(config, k, inputs) or ("the fold models' settings differ" if configs else None)
+    if problem:
+        raise InputError(problem, field="fold_models")
     return config
+
+
+def residual_fold_problem(config: MethodConfig, k: int, inputs: str) -> str | None:
+    """Why a fold model of these settings cannot stand for the GMM-GPR alone with ``k`` and ``inputs``, or None."""
+    if (config.k, config.inputs) != (k, inputs) or config.effects:
+        return (f"expected the GMM-GPR alone with K = {k} and {inputs} inputs, got K = {config.k}, {config.inputs} "
+                f"inputs, effects {config.effects or 'none'}")
+    return None
 
 
 def _model_fold(campaign, model, test_id, n_samples, surrogate, label) -> list[dict]:
     """The ISO rows of a fold model's prediction of its held-out test, as ``evaluate`` scores a fold."""
-    pred, facts = rollout_fold(model, campaign, test_id, n_samples)
-    iso = score_fold(campaign, test_id, pred.frame(), facts, cae=cae_pulse(campaign, surrogate, test_id))["iso"]
+    from crashfuse.evaluation.loto import scored_fold
+
+    iso = scored_fold(model, campaign, surrogate, test_id, n_samples)["iso"]
     return _relabel(pd.DataFrame(iso), label, "GMM-GPR")
 
 

@@ -277,12 +277,20 @@ def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples
     (:mod:`crashfuse.evaluation.fold`, the workflow's three steps in one process); the fit's inner
     error too where its input mode is among ``auto_modes``."""
     model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics, pooled=pooled)
-    pred, facts = rollout_fold(model, campaign, test_id, n_samples, band, config.inputs in auto_modes)
+    return {**scored_fold(model, campaign, surrogate, test_id, n_samples, band, config.inputs in auto_modes),
+            "model": model}
+
+
+def scored_fold(model, campaign, surrogate, test_id, n_samples, band="test", inner=False) -> dict:
+    """A fitted fold model's rollout of its held-out test, scored: ``iso``, ``coverage``, ``record`` (as
+    :func:`crashfuse.evaluation.fold.score_fold`), ``facts`` and ``frame`` (the prediction table with the
+    test's deceleration)."""
+    pred, facts = rollout_fold(model, campaign, test_id, n_samples, band, inner)
     frame = pred.frame()
     scored = score_fold(campaign, test_id, frame, facts, cae=cae_pulse(campaign, surrogate, test_id))
     frame["test_decel_g"] = np.interp(pred.time, *_test_decel(campaign, test_id)) / G0
     return {"iso": scored["iso"], "coverage": scored["coverage"], "frame": frame, "record": scored["record"],
-            "facts": facts, "model": model}
+            "facts": facts}
 
 
 def _test_decel(campaign, test_id):
