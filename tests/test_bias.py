@@ -744,3 +744,82 @@ def test_onset_correction_needs_three_tests_in_its_window():
     model = OnsetCorrectedBias(base=GMMGPBias(trend="zero", random_state=0), time=_time, window=(1.0, 1.3)).fit(X, y, groups)
     assert model.onset_gp_ is None
     np.testing.assert_array_equal(model.predict(X), model.base_.predict(X))
+
+
+# --------------------------------------------------------------------------- held-out shrinkage
+def _incoherent_data(speeds=(4.0, 6.0, 8.0, 10.0, 12.0, 14.0), amplitudes=(1.0, -1.0, 1.0, -1.0, 1.0, -1.0), per=60):
+    """Bias over x (here also the time, :func:`_x_time`): one shape for every test before x = 1, then a bump
+    of each test's own amplitude - of the opposite sign in the next faster test, so no test's neighbours
+    predict it."""
+    rows = []
+    for v0, amp in zip(speeds, amplitudes):
+        x = np.linspace(0.0, 2.0, per)
+        y = np.where(x < 1.0, np.sin(np.pi * x), amp * np.sin(2 * np.pi * (x - 1.0)))
+        rows.append((np.column_stack([x, np.full(per, v0)]), y, np.full(per, v0)))
+    return tuple(np.concatenate(c) for c in zip(*rows))
+
+
+def _x_time(X):
+    return X[:, 0]
+
+
+@pytest.fixture(scope="module")
+def shrunk_model():
+    X, y, groups = _incoherent_data()
+    base = GMMGPBias(n_clusters=1, trend="zero", random_state=0)
+    return OnsetCorrectedBias(base=base, time=_x_time, window=None, shrink_width=0.1, random_state=0).fit(X, y, groups)
+
+
+def test_held_out_shrinkage_keeps_what_predicts_a_left_out_test_and_drops_the_rest(shrunk_model):
+    """The factor is 1 where every test's bias has one shape and 0 where the neighbours' bias says the
+    opposite; at a new test without a bump the mean there defers to 0, where the base model carries its
+    neighbours' bump, and elsewhere it is the base model's."""
+    times, c = shrunk_model.shrink_times_, shrunk_model.shrink_
+    assert shrunk_model.onset_gp_ is None and np.all((c >= 0) & (c <= 1))
+    assert c[times < 0.7].min() > 0.99 and c[times > 1.3].max() < 0.01
+    X, y, _ = _incoherent_data(speeds=(8.4,), amplitudes=(0.0,))
+    late = _x_time(X) > 1.3
+    base, mean = shrunk_model.base_.predict(X), shrunk_model.predict(X)
+    assert np.sqrt(np.mean(base[late] ** 2)) > 0.2 and np.abs(mean[late]).max() < 0.01
+    early = _x_time(X) < 0.7
+    np.testing.assert_allclose(mean[early], base[early], atol=1e-6)
+
+
+def test_held_out_shrinkage_moves_the_mean_not_the_spread(shrunk_model):
+    """Draws shift with the mean and keep the base model's deviations; the latent std is the base model's;
+    the held-out residuals are the bias minus the shrunk held-out prediction."""
+    X, y, groups = _incoherent_data()
+    c = np.interp(_x_time(X), shrunk_model.shrink_times_, shrunk_model.shrink_)
+    mean, std = shrunk_model.predict(X, return_std=True)
+    base_mean, base_std = shrunk_model.base_.predict(X, return_std=True)
+    np.testing.assert_allclose(mean, c * base_mean, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(std, base_std)
+    draws = shrunk_model.sample_functions(X, 3, random_state=5)
+    np.testing.assert_allclose(draws - mean, shrunk_model.base_.sample_functions(X, 3, random_state=5) - base_mean,
+                               atol=1e-9)
+    e_base = shrunk_model.base_.held_out_residuals(X, y, groups)
+    np.testing.assert_allclose(shrunk_model.held_out_residuals(X, y, groups), y - c * (y - e_base), atol=1e-12)
+
+
+def test_held_out_shrinkage_keeps_room_in_the_test_band_for_what_it_took_off(shrunk_model):
+    """A new test may have the bump its neighbours had: what the shrinkage took off the mean adds to the
+    test-to-test scatter in quadrature; where it took nothing, the scatter is the base model's."""
+    X, _, _ = _incoherent_data(speeds=(8.4,), amplitudes=(0.0,))
+    c = np.interp(_x_time(X), shrunk_model.shrink_times_, shrunk_model.shrink_)
+    base, taken = shrunk_model.base_.scatter_std(X), (1 - c) * shrunk_model.base_.predict(X)
+    np.testing.assert_allclose(shrunk_model.scatter_std(X), np.sqrt(base**2 + taken**2), rtol=1e-12)
+    late, early = _x_time(X) > 1.3, _x_time(X) < 0.7
+    assert np.all(shrunk_model.scatter_std(X)[late] >= base[late]) and np.abs(taken[late]).max() > 0.2
+    np.testing.assert_allclose(shrunk_model.scatter_std(X)[early], base[early], rtol=1e-9)
+
+
+def test_shrink_profile_is_the_windowed_least_squares_scale_clipped_to_0_1():
+    from crashfuse.method.onset import shrink_profile
+
+    t = np.array([0.0, 0.0, 1.0, 1.0, 2.0])
+    y = np.array([1.0, 2.0, 1.0, -1.0, 0.0])
+    m = np.array([2.0, 2.0, 1.0, 1.0, 0.0])
+    got = shrink_profile(np.array([0.0, 1.0, 2.0]), t, y, m, 1e-3)  # narrow: each time sees its own rows
+    np.testing.assert_allclose(got, [6.0 / 8.0, 0.0, 1.0])  # 0.75; sum y m = 0 -> 0; nothing to judge by -> 1
+    assert shrink_profile(np.array([0.0]), t[:2], -y[:2], m[:2], 1e-3)[0] == 0.0  # a negative scale clips to 0
+    assert shrink_profile(np.array([0.0]), t[:2], 3 * m[:2], m[:2], 1e-3)[0] == 1.0  # never amplifies

@@ -21,10 +21,10 @@ def test_unset_mode_settings_take_the_input_modes_defaults(inputs):
 
 def test_the_two_modes_differ_where_the_method_says():
     paper, state = MethodConfig(inputs="paper"), MethodConfig(inputs="state")
-    assert (paper.target, paper.trend, paper.pooled, paper.onset, paper.use_companion) == (
-        "absolute", "constant", False, False, False)
-    assert (state.target, state.trend, state.pooled, state.onset, state.use_companion) == (
-        "relative", "zero", True, True, True)
+    assert (paper.target, paper.trend, paper.pooled, paper.onset, paper.shrink, paper.use_companion) == (
+        "absolute", "constant", False, False, False, False)
+    assert (state.target, state.trend, state.pooled, state.onset, state.shrink, state.use_companion) == (
+        "relative", "zero", True, True, True, True)
 
 
 def test_a_default_config_hands_the_bias_model_its_own_defaults():
@@ -47,6 +47,8 @@ def test_a_default_config_hands_the_bias_model_its_own_defaults():
     (dict(velocity="log"), "velocity"),
     (dict(pooled="yes"), "pooled"),
     (dict(inputs="paper", onset=True), "onset"),
+    (dict(inputs="paper", shrink=True), "shrink"),
+    (dict(inputs="state", shrink="yes"), "shrink"),
     (dict(n_restarts=-1), "n_restarts"),
     (dict(max_condition_points=0), "max_condition_points"),
     (dict(theta_max_candidates=()), "theta_max_candidates"),
@@ -78,6 +80,7 @@ def test_fold_settings_list_only_the_bias_settings_a_fit_changed():
 
 @pytest.mark.parametrize("args, flag", [
     (["--inputs", "paper", "--onset"], "--onset"),
+    (["--inputs", "paper", "--shrink"], "--shrink"),
     (["--inputs", "state", "--seed", "1", "--holdout", "T01"], None),  # the config is fine: the campaign is not
 ])
 def test_the_cli_names_the_flag_of_a_bad_setting(tmp_path, capsys, args, flag):

@@ -39,9 +39,10 @@ def _bias_model():
 ESTIMATORS = [
     KrigingGP(n_restarts=0, random_state=0),
     _bias_model(),
-    # time: the first input; the window keeps the correction on the rows where it is below 0.5.
+    # time: the first input; the window keeps the correction on the rows where it is below 0.5; both
+    # corrections on, as in the state default.
     OnsetOnRowBlocks(base=_bias_model(), time=operator.itemgetter((slice(None), 0)), window=(0.0, 0.5),
-                     random_state=0),
+                     shrink_width=0.1, random_state=0),
 ]
 
 
@@ -71,7 +72,7 @@ def test_fitted_state_is_plain_data():
     X = np.random.default_rng(0).uniform(size=(60, 2))
     y = np.sin(3 * X[:, 0]) + X[:, 1]
     model = ESTIMATORS[2].fit(X, y, np.repeat(np.arange(6), 10))
-    assert model.onset_gp_ is not None and _plain(model)
+    assert model.onset_gp_ is not None and model.shrink_ is not None and _plain(model)
     assert not _plain({"f": np.sin})
 
 

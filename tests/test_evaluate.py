@@ -234,6 +234,9 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     assert main(["fit", str(folder), "--k", "1", "--inputs", "state", "--no-onset", "--n-grid", "40",
                  "--out", str(model)]) == 0
     assert load_model(model).config.onset is False  # state's default is True
+    assert main(["fit", str(folder), "--k", "1", "--inputs", "state", "--no-shrink", "--n-grid", "40",
+                 "--out", str(model)]) == 0
+    assert load_model(model).config.shrink is False and load_model(model).bias_["loading"].shrink_ is None
     assert main(["fit", str(folder), "--k", "1", "--inputs", "paper", "--onset", "--out", str(model)]) == 2
     assert main(["evaluate", str(folder), "--k", "0", "--out", str(tmp_path / "x")]) == 2
     assert main(["evaluate", str(folder), "--k", "1", "--holdout", "C0001", "--out", str(tmp_path / "x")]) == 2

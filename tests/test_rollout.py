@@ -425,23 +425,30 @@ def test_each_input_mode_has_its_default_clusters(campaign, surrogate, inputs, p
     assert (other.base_ if isinstance(other, OnsetCorrectedBias) else other).pooled is not pooled
 
 
-@pytest.mark.parametrize(("inputs", "onset"), [("paper", False), ("state", True)])
-def test_each_input_mode_has_its_default_onset_correction(campaign, surrogate, inputs, onset):
-    """state: the loading branch's model corrects its held-out error over the time since contact."""
+@pytest.mark.parametrize(("inputs", "on"), [("paper", False), ("state", True)])
+def test_each_input_mode_has_its_default_held_out_corrections(campaign, surrogate, inputs, on):
+    """state: the loading branch's model shrinks its mean and corrects its held-out error over the time since contact."""
     model = fit_model(campaign, MethodConfig(k=1, inputs=inputs, **FAST), surrogate=surrogate)
-    assert model.config.onset is onset
-    assert isinstance(model.bias_["loading"], OnsetCorrectedBias) is onset
+    assert model.config.onset is on and model.config.shrink is on
+    assert isinstance(model.bias_["loading"], OnsetCorrectedBias) is on
     assert isinstance(model.bias_["unloading"], GMMGPBias)
-    if onset:
+    if on:
         est = model.bias_["loading"]
+        assert est.window is not None and est.shrink_width is not None
         x, v = np.array([0.05, 0.3]), np.array([14.0, 10.0])
         X = model.features("loading", x, v, model.condition(15.0, 1000.0, 700.0))
         np.testing.assert_allclose(est.time(X), 2 * x / (15.0 + v))
-        off = fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=False, **FAST), surrogate=surrogate)
-        assert isinstance(off.bias_["loading"], GMMGPBias) and off.config.onset is False
+        one = fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=False, **FAST), surrogate=surrogate)
+        assert one.bias_["loading"].window is None and one.bias_["loading"].onset_gp_ is None
+        assert one.bias_["loading"].shrink_ is not None
+        off = fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=False, shrink=False, **FAST),
+                        surrogate=surrogate)
+        assert isinstance(off.bias_["loading"], GMMGPBias) and off.config.onset is off.config.shrink is False
     else:
-        with pytest.raises(InputError, match="state inputs"):
-            fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=True, **FAST), surrogate=surrogate)
+        for name in ("onset", "shrink"):
+            with pytest.raises(InputError, match="state inputs"):
+                fit_model(campaign, MethodConfig(k=1, inputs=inputs, **{name: True}, **FAST), surrogate=surrogate)
+
 
 def test_rollout_rebound_is_sought_where_pulse_metrics_seeks_it():
     # A long record whose velocity keeps falling after 200 ms: only the rebound inside the

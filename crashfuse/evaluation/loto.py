@@ -114,9 +114,9 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     **settings
         Further :class:`crashfuse.method.config.MethodConfig` settings of every fold (``assignment``,
         ``extra_inputs``, ``n_grid``, ``use_companion``, ``target``, ``weights``, ``velocity``, ``trend``,
-        ``pooled``, ``onset`` - the state folds' only: the paper inputs carry no time - and the
+        ``pooled``, ``onset`` and ``shrink`` - the state folds' only: the paper inputs carry no time - and the
         GMMGPBias settings such as ``theta_max_candidates`` or ``calibrate_variance``); None for
-        ``target``, ``trend``, ``pooled``, ``onset`` or ``use_companion`` keeps each input mode's default.
+        ``target``, ``trend``, ``pooled``, ``onset``, ``shrink`` or ``use_companion`` keeps each input mode's default.
 
     Returns
     -------
@@ -201,8 +201,11 @@ def _check_grid(ks, inputs):
     return ks, inputs
 
 
+STATE_ONLY = ("onset", "shrink")  # settings over the time since contact, which the paper inputs lack
+
+
 def fold_configs(ks, inputs, random_state: int, settings: dict) -> dict:
-    """The :class:`MethodConfig` of every (input mode, K); ``onset`` applies to the state folds only.
+    """The :class:`MethodConfig` of every (input mode, K); ``onset`` and ``shrink`` apply to the state folds only.
 
     Raises
     ------
@@ -211,7 +214,7 @@ def fold_configs(ks, inputs, random_state: int, settings: dict) -> dict:
     """
     out = {}
     for mode in inputs:
-        given = {name: value for name, value in settings.items() if mode == "state" or name != "onset"}
+        given = {name: value for name, value in settings.items() if mode == "state" or name not in STATE_ONLY}
         for k in ks:
             out[mode, k] = MethodConfig(k=k, inputs=mode, random_state=random_state, **given)
     return out

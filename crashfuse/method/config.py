@@ -27,6 +27,7 @@ MODE_DEFAULTS = {
         "trend": "constant",  # as published: the GPs' constant level
         "pooled": False,  # as published: each cluster GP on its own points
         "onset": False,  # the paper inputs carry no velocity, hence no time since contact
+        "shrink": False,  # as published: the GP mean as it is
         "use_companion": False,  # as published: a condition's CAE curve from the surrogate G_a
     },
     "state": {
@@ -42,6 +43,10 @@ MODE_DEFAULTS = {
         # onset transients locked in time move with speed in s: the loading branch also corrects its
         # held-out error over the time since contact (docs/bias-model.md, "Onset correction")
         "onset": True,
+        # where the other tests' bias does not predict a left-out test's (bumps of one or two tests),
+        # the mean defers to the CAE model: held out on the campaigns of both worlds it never lost to
+        # CAE where the unshrunk mean did (docs/bias-model.md, "Held-out shrinkage"; decisions.md, section 40)
+        "shrink": True,
         # a held-out test is predicted on its own CAE run, the one its CAE row scores: the fold then
         # measures the correction, not the surrogate's error there too (docs/decisions.md, section 39)
         "use_companion": True,
@@ -58,7 +63,7 @@ _BIAS_DEFAULTS = GMMGPBias().get_params()
 class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
-    ``target``, ``trend``, ``pooled``, ``onset`` and ``use_companion`` left as None take the input mode's value
+    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink`` and ``use_companion`` left as None take the input mode's value
     (``MODE_DEFAULTS``), so a config always holds the values the fit used. To change the input
     mode of a config, build a new one (``dataclasses.replace`` keeps the old mode's values).
 
@@ -96,6 +101,10 @@ class MethodConfig:
     onset : bool or None
         Correct the loading branch's held-out error over the time since contact early in the pulse
         (:class:`crashfuse.method.onset.OnsetCorrectedBias`; ``state`` inputs only).
+    shrink : bool or None
+        Scale the loading branch's bias mean, over the time since contact, by how well the training
+        tests' leave-one-test-out predictions predict them (:class:`crashfuse.method.onset.OnsetCorrectedBias`
+        ``shrink_width``; ``state`` inputs only).
     weights : bool
         Axle masses among the bias inputs.
     velocity : {"linear", "sqrt"}
@@ -111,7 +120,7 @@ class MethodConfig:
     Raises
     ------
     InputError
-        A value of the wrong type or out of range, naming the setting; ``onset`` with the
+        A value of the wrong type or out of range, naming the setting; ``onset`` or ``shrink`` with the
         ``paper`` inputs.
     """
 
@@ -127,6 +136,7 @@ class MethodConfig:
     trend: str | None = None
     pooled: bool | None = None
     onset: bool | None = None
+    shrink: bool | None = None
     weights: bool = True
     velocity: str = "sqrt"
     effects: tuple | str = ()
@@ -148,7 +158,7 @@ class MethodConfig:
         _one_of("target", self.target, TARGETS)
         _one_of("trend", self.trend, TRENDS)
         _one_of("velocity", self.velocity, tuple(VELOCITY))
-        for name in ("extra_inputs", "cae_decel", "use_companion", "pooled", "onset", "weights",
+        for name in ("extra_inputs", "cae_decel", "use_companion", "pooled", "onset", "shrink", "weights",
                      "calibrate_variance", "estimate_scatter"):
             self._set(name, _boolean(name, getattr(self, name)))
         self._set("effects", check_effects(self.effects))
@@ -158,9 +168,10 @@ class MethodConfig:
         for name in ("max_fit_points", "max_condition_points", "min_cluster_points"):
             self._set(name, _integer(name, getattr(self, name), 1, name, optional=True))
         self._set("theta_max_candidates", _positive_floats("theta_max_candidates", self.theta_max_candidates))
-        if self.onset and self.inputs != "state":
-            raise InputError("the onset correction needs the state inputs (the velocity gives the time since contact)",
-                             field="onset")
+        for name in ("onset", "shrink"):
+            if getattr(self, name) and self.inputs != "state":
+                raise InputError(f"{name} needs the state inputs (the velocity gives the time since contact)",
+                                 field=name)
 
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)  # normalising a frozen instance's own field, once

@@ -25,7 +25,7 @@ import numpy as np
 import crashfuse
 from crashfuse.gp.kriging import SEED_MAX
 from crashfuse.method.mixture import GMMGPBias, TooFewPointsError
-from crashfuse.method.onset import OnsetCorrectedBias
+from crashfuse.method.onset import ONSET_WINDOW, SHRINK_WIDTH, OnsetCorrectedBias
 from crashfuse.signals.dynamics import Trajectory
 from crashfuse.errors import InputError
 from crashfuse.io import persist
@@ -481,15 +481,17 @@ def holdout_tests(campaign: Campaign, holdout) -> set[str]:
 
 
 def _fit_branch(data: BiasData, branch: str, config: MethodConfig, seed: int, root, pooled_gp=None):
-    """One branch's GMMGPBias (wrapped in the onset correction on the loading branch where the config
-    asks; ``pooled_gp`` as :meth:`GMMGPBias.fit` takes it); None for an unloading branch without data
+    """One branch's GMMGPBias (wrapped in the held-out shrinkage and the onset correction on the loading
+    branch where the config asks; ``pooled_gp`` as :meth:`GMMGPBias.fit` takes it); None for an unloading branch without data
     (zero bias there)."""
     d = data.branch(branch)
     if d.y.size == 0 and branch == "unloading":
         return None
     est = GMMGPBias(n_clusters=config.k, assignment=config.assignment, random_state=seed, **config.bias_params())
-    if config.onset and branch == "loading":
-        est = OnsetCorrectedBias(base=est, time=functools.partial(nominal_time, d.columns), random_state=seed,
+    if (config.onset or config.shrink) and branch == "loading":
+        est = OnsetCorrectedBias(base=est, time=functools.partial(nominal_time, d.columns),
+                                 window=ONSET_WINDOW if config.onset else None,
+                                 shrink_width=SHRINK_WIDTH if config.shrink else None, random_state=seed,
                                  blas_threads=est.blas_threads)
     try:
         return est.fit(d.X, d.y, d.groups, pooled_gp=pooled_gp)
