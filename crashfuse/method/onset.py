@@ -48,8 +48,8 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
       ``window[1]``; its mean is added, whole up to ``window[0]`` and faded out by ``window[1]`` (cos^2).
 
     Both move the mean only: the latent band and the draws' spread about the mean stay the base
-    model's; the test-to-test scatter adds, while the onset correction acts, how far the training
-    tests' held-out errors lie from it (:meth:`scatter_std`).
+    model's. The test-to-test scatter adds what the shrinkage took off the mean and, while the onset
+    correction acts, how far the training tests' held-out errors lie from it (:meth:`scatter_std`).
 
     Parameters
     ----------
@@ -148,6 +148,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         return np.interp(t, self.shrink_times_, self.shrink_) * mean
 
     def _shrinks(self):
+        """Whether the mean is shrunk."""
         return getattr(self, "shrink_", None) is not None  # None: no shrinkage, or a model file from before it
 
     def _discount(self, X, base_mean):
