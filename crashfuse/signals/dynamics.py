@@ -149,7 +149,7 @@ def rollout(decel_fn: DecelFn, v0, dt: float, n_steps: int, n_samples: int = 1) 
         raise InputError(f"expected dt > 0 and n_steps >= 1, got dt={dt}, n_steps={n_steps}", field="dt")
     m, n = v.size, int(n_steps) + 1
     out_s, out_v, out_a = (np.empty((m, n)) for _ in range(3))
-    out_b = np.zeros((m, n), dtype=np.int8)
+    out_unloading, out_separated = np.zeros((m, n), dtype=bool), np.zeros((m, n), dtype=bool)
     s = np.zeros(m)
     s_max = np.zeros(m)
     loading = np.ones(m, dtype=bool)
@@ -168,8 +168,9 @@ def rollout(decel_fn: DecelFn, v0, dt: float, n_steps: int, n_samples: int = 1) 
         s, a = s_new, a_new
         separated |= ~loading & (a_new <= 0) & (v < 0)
         out_s[:, i], out_v[:, i], out_a[:, i] = s, v, a
-        out_b[:, i] = np.where(separated, Trajectory.SEPARATED, np.where(loading, Trajectory.LOADING,
-                                                                           Trajectory.UNLOADING))
+        out_unloading[:, i], out_separated[:, i] = ~loading, separated
+    out_b = np.where(out_separated, Trajectory.SEPARATED,  # the branch codes once, not per step
+                     np.where(out_unloading, Trajectory.UNLOADING, Trajectory.LOADING)).astype(np.int8)
     return Trajectory(np.arange(n) * dt, out_s, out_v, out_a, out_b, s_max)
 
 
@@ -187,7 +188,7 @@ def _decel(decel_fn: DecelFn, state: State, loading, separated, m: int) -> np.nd
     a = np.asarray(decel_fn(state), dtype=float)
     if a.shape != (m,):
         raise InputError(f"decel_fn must return shape ({m},), got {a.shape}", field="decel_fn")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise InputError(f"decel_fn returned a non-finite deceleration at step {state.step}", field="decel_fn")
     # The barrier cannot pull: on unloading the deceleration is >= 0, and 0 after separation.
     a = np.where(loading, a, np.maximum(a, 0.0))
