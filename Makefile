@@ -23,7 +23,7 @@ reproduce: $(VENV)/.runtime
 
 ## test: run the test suite
 test: $(VENV)/.test
-	$(PY) -m pytest -q -n 2 --durations=8
+	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=8
 
 clean:
 	rm -rf $(VENV) .snakemake mlflow.db mlartifacts

@@ -255,39 +255,47 @@ def test_diagnosis_files(damping_world, tmp_path):
         assert (out / "figures" / name).stat().st_size > 0
 
 
-@pytest.mark.slow
-def test_the_shrink_tables_gmm_gpr_rows_are_the_same_on_any_number_of_workers(damping_world):
-    """The GMM-GPR alone and on the residual of CAE + effects, leave-one-test-out (the slow part of a
-    diagnosis): a row per test and window for each, the same numbers on one process and on two (to the
-    last bits: worker processes sum some BLAS products in another order, 1e-11 here)."""
-    campaign, _ = damping_world
-    tests = campaign.tests[::3]
-    small = campaign.subset(tests + [campaign.companion(t).run_id for t in tests] + campaign.cae)
-    shrink = [diagnose(small, effects=("damping",), n_samples=20, regions=False, n_jobs=n, progress=None).shrink
-              for n in (1, 2)]
-    pd.testing.assert_frame_equal(*shrink, check_exact=False, rtol=0, atol=1e-9)
-    for model in ("CAE", "CAE+effects", "GMM-GPR", "CAE+effects+GMM-GPR"):
-        rows = shrink[0][shrink[0].model == model]
-        assert sorted(rows.test_id) == sorted(t for t in tests for _ in range(3)), model
-        assert rows.overall.between(0, 1).all()
-
-
-def test_the_gmm_gpr_rows_from_given_fold_models_are_those_it_fits(damping_world):
-    """Fold models fitted elsewhere (the workflow's, with the scatter refits) give the shrink table it fits
-    itself: the rows score the mean, which the scatter does not move. Models of another K are refused."""
+@pytest.fixture(scope="module")
+def small_damping(damping_world):
+    """Three tests of the damping world with their companions and every CAE run, its surrogate, and the
+    shrink table diagnose fits itself on one process (the slow part of a diagnosis: the GMM-GPR alone and
+    on the residual of CAE + effects, leave-one-test-out)."""
     campaign, _ = damping_world
     tests = campaign.tests[::4]
     small = campaign.subset(tests + [campaign.companion(t).run_id for t in tests] + campaign.cae)
     surrogate = CAESurrogate(random_state=0).fit(small)
+    kw = dict(effects=("damping",), n_samples=20, surrogate=surrogate, regions=False)
+    return small, tests, surrogate, kw, diagnose(small, n_jobs=1, progress=None, **kw).shrink
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("small_damping")  # one worker computes the fixture for both tests (make test: loadgroup)
+def test_the_shrink_tables_gmm_gpr_rows_are_the_same_on_any_number_of_workers(small_damping):
+    """A row per test and window for each model, the same numbers on one process and on two (to the
+    last bits: worker processes sum some BLAS products in another order, 1e-11 here)."""
+    small, tests, _, kw, one = small_damping
+    two = diagnose(small, n_jobs=2, progress=None, **kw).shrink
+    pd.testing.assert_frame_equal(one, two, check_exact=False, rtol=0, atol=1e-9)
+    for model in ("CAE", "CAE+effects", "GMM-GPR", "CAE+effects+GMM-GPR"):
+        rows = one[one.model == model]
+        assert sorted(rows.test_id) == sorted(t for t in tests for _ in range(3)), model
+        assert rows.overall.between(0, 1).all()
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("small_damping")
+def test_the_gmm_gpr_rows_from_given_fold_models_are_those_it_fits(small_damping):
+    """Fold models fitted elsewhere (the workflow's, with the scatter refits) give the shrink table it fits
+    itself: the rows score the mean, which the scatter does not move. Models of another K are refused."""
+    small, tests, surrogate, kw, own = small_damping
     said = []
-    kw = dict(effects=("damping",), n_samples=20, surrogate=surrogate, regions=False, progress=said.append)
     folds = {t: fit_model(small, MethodConfig(k=1, inputs="state"), holdout=t, surrogate=surrogate) for t in tests}
-    own, given = (diagnose(small, fold_models=f, **kw).shrink for f in (None, folds))
+    given = diagnose(small, fold_models=folds, progress=said.append, **kw).shrink
     assert sum("from the given fold models" in line for line in said) == 1  # rolled out, not refitted
     pd.testing.assert_frame_equal(own, given, check_exact=False, rtol=0, atol=1e-9)
     assert set(given.model) == {"CAE", "CAE+effects", "GMM-GPR", "CAE+effects+GMM-GPR"}
     with pytest.raises(InputError, match="K = 2") as err:
-        diagnose(small, fold_models=folds, k=2, **kw)
+        diagnose(small, fold_models=folds, k=2, progress=None, **kw)
     assert err.value.field == "fold_models"
 
 
