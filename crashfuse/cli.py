@@ -702,7 +702,8 @@ def _add_world_validate_method(wsub) -> None:
     s.add_argument("--worlds", nargs="+", default=None, help="first multibody (default both)")
     s.add_argument("--withheld", nargs="+", default=None, metavar="WITHHELD",
                    help="single (every effect), pairs (every pair; multibody only), paper, none (the control), "
-                        "an EFFECT or EFFECT+EFFECT (default: single pairs paper none)")
+                        "noise (the control with an exact CAE model: tests are their CAE runs plus noise), "
+                        "an EFFECT or EFFECT+EFFECT (default: single pairs paper none noise)")
     s.add_argument("--strengths", nargs="+", default=None, help="realistic subtle (default both)")
     s.add_argument("--seeds", nargs="+", type=_seed, default=None, help="world seeds (default 0 1 2)")
     s.add_argument("--matrices", nargs="+", default=None,

@@ -15,13 +15,13 @@ def test_default_spread_skips_what_the_first_world_cannot_make():
     specs, notes = mv.plan()
     first = [s for s in specs if s.world == "first"]
     second = [s for s in specs if s.world == "multibody"]
-    # first: table1 x 2 sizes x (5 effects + paper at 2 strengths + the control once) x 3 seeds
-    assert len(first) == 2 * (6 * 2 + 1) * 3
+    # first: table1 x 2 sizes x (5 effects + paper at 2 strengths + the two controls once) x 3 seeds
+    assert len(first) == 2 * (6 * 2 + 2) * 3
     assert {s.matrix for s in first} == {"table1"} and not any("+" in s.withheld for s in first)
-    # multibody: 2 matrices x 2 sizes x (5 + 10 pairs + paper at 2 strengths + the control once) x 3 seeds
-    assert len(second) == 2 * 2 * (16 * 2 + 1) * 3
+    # multibody: 2 matrices x 2 sizes x (5 + 10 pairs + paper at 2 strengths + the two controls once) x 3 seeds
+    assert len(second) == 2 * 2 * (16 * 2 + 2) * 3
     assert sum(s.withheld == "damping+mass" for s in second) == 2 * 2 * 2 * 3
-    assert {s.strength for s in specs if s.withheld == "none"} == {"realistic"}
+    assert {s.strength for s in specs if s.withheld in ("none", "noise")} == {"realistic"}
     assert len({s.key for s in specs}) == len(specs)
     assert any("pairs skipped" in n for n in notes) and any("wide skipped" in n for n in notes)
 
@@ -122,3 +122,38 @@ def test_bad_options_exit_2_naming_the_option(tmp_path, capsys, args, flag):
 def test_library_names_the_argument():
     with pytest.raises(InputError, match="n_samples"):
         mv.validate_method("unused", **mv.QUICK | {"n_samples": 0}, progress=None)
+
+
+def test_the_noise_control_is_each_test_s_own_cae_run_plus_filtered_noise(tmp_path):
+    """The control with an exact CAE model: every test is its companion CAE run as read plus noise of
+    0.2-0.3 g rms after CFC 60, with no transient at the record's ends; the CAE runs stay as they were."""
+    import numpy as np
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.units import G0
+
+    spec = mv.CampaignSpec("multibody", "noise", "realistic", 0, "table1", 20)
+    made = read_campaign(spec.generate(tmp_path / "noise"))
+    plain = read_campaign(mv.CampaignSpec("multibody", "none", "realistic", 0, "table1", 20).generate(tmp_path / "none"))
+    assert made.cae == plain.cae and made.tests == plain.tests
+    for run in made.cae[:3]:
+        np.testing.assert_array_equal(made.pulses[run].decel, plain.pulses[run].decel)
+    rms = []
+    for test in made.tests:
+        assert made.pulses[test].time[-1] == plain.pulses[test].time[-1]  # the test's record length
+        noise = (made.pulses[test].decel - made.companion(test).decel[:made.pulses[test].time.size]) / G0
+        rms.append(noise.std())
+        assert np.abs(noise).max() < 1.5, test
+        assert np.abs(noise[:50]).max() < 1.0 and np.abs(noise[-50:]).max() < 1.0, test  # no filter transient
+    assert 0.2 < np.mean(rms) < 0.3  # 2 g white at 12.5 kHz through CFC 60 (a record is ~20 correlation times)
+
+
+def test_a_noise_control_needs_a_companion_per_test(tmp_path):
+    from crashfuse.world.noise_control import make_noise_control
+
+    folder = mv.CampaignSpec("first", "none", "realistic", 0, "table1", 20).generate(tmp_path / "c")
+    table = pd.read_csv(folder / "conditions.csv", dtype=str, keep_default_na=False)
+    table.loc[table["run_id"] == "T03", "cae_run_id"] = ""
+    table.to_csv(folder / "conditions.csv", index=False)
+    with pytest.raises(InputError, match="T03 has no companion") as err:
+        make_noise_control(folder, 0)
+    assert err.value.field == "cae_run_id"

@@ -265,7 +265,7 @@ def test_method_matrix_is_its_own_target_with_the_config_spread(tmp_path):
     assert "validate_method" not in job_counts(snakemake(tmp_path, "-n", configfile=config).stdout)
     done = snakemake(tmp_path, "-n", "-p", "results/validation/method_matrix.csv", configfile=config)
     assert job_counts(done.stdout) == {"validate_method": 1}
-    assert "world validate-method --worlds multibody --withheld single pairs paper none" in done.stdout
+    assert "world validate-method --worlds multibody --withheld single pairs paper none noise" in done.stdout
     assert "--seeds 4 " in done.stdout and "--n-cae 150 1000" in done.stdout
 
 

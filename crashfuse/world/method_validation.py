@@ -35,6 +35,7 @@ from crashfuse.world import presets as first_presets
 from crashfuse.world.multibody import WORLD_VERSION as SECOND_VERSION
 from crashfuse.world.multibody import generate as second_generate
 from crashfuse.world.multibody import presets as second_presets
+from crashfuse.world.noise_control import make_noise_control
 
 WORLDS = ("first", "multibody")
 STRENGTHS = ("realistic", "subtle")
@@ -44,11 +45,12 @@ WORLD_MATRICES = {"first": ("table1",), "multibody": second_presets.MATRICES}
 WORLD_WITHHOLDS_SEVERAL = {"first": False, "multibody": True}
 # Withheld tokens: groups expanding to every single effect / every pair (where the world can).
 SINGLE, PAIRS, PAPER, CONTROL = "single", "pairs", "paper", "none"
+NOISE = "noise"  # the control with an exact CAE model: tests are their CAE runs plus noise (world.noise_control)
 PAIR_SEP = "+"
 LOSS_MARGINS = (0.01, 0.05)  # a test-window is lost when the model's ISO is below CAE's by more
 COVERAGE_FILE = "coverage.csv"
 
-DEFAULTS = dict(worlds=WORLDS, withheld=(SINGLE, PAIRS, PAPER, CONTROL), strengths=STRENGTHS, seeds=(0, 1, 2),
+DEFAULTS = dict(worlds=WORLDS, withheld=(SINGLE, PAIRS, PAPER, CONTROL, NOISE), strengths=STRENGTHS, seeds=(0, 1, 2),
                 matrices=MATRICES, n_cae=(150, 1000), inputs=("state",), ks=(1, 2, 3), n_samples=200)
 # A tiny spread for tests and a first look: the control of both worlds on small CAE designs.
 QUICK = dict(worlds=WORLDS, withheld=(CONTROL,), strengths=("realistic",), seeds=(0,), matrices=("table1",),
@@ -66,7 +68,8 @@ class CampaignSpec:
     ----------
     world : {"first", "multibody"}
     withheld : str
-        A catalogue effect, effects joined by ``+``, ``paper`` or ``none`` (the control).
+        A catalogue effect, effects joined by ``+``, ``paper``, ``none`` (the control) or ``noise`` (the
+        control with the CAE model exact: :func:`crashfuse.world.noise_control.make_noise_control`).
     strength : {"realistic", "subtle"}
     seed : int
         World seed (CAE design, test noise).
@@ -91,6 +94,9 @@ class CampaignSpec:
 
     def generate(self, folder: Path) -> Path:
         """Write this campaign (with its ``world.json``) into ``folder``."""
+        if self.withheld == NOISE:
+            dataclasses.replace(self, withheld=CONTROL).generate(folder)
+            return make_noise_control(folder, self.seed)
         names = None if self.withheld == PAPER else self.withheld.split(PAIR_SEP)
         preset = PAPER if names is None else "withheld"
         if self.world == "first":
@@ -155,7 +161,7 @@ def plan(worlds=DEFAULTS["worlds"], withheld=DEFAULTS["withheld"], strengths=DEF
         if PAIRS in withheld and not WORLD_WITHHOLDS_SEVERAL[world]:
             notes.append(f"{world} world: pairs skipped (it withholds one effect at a time)")
         for matrix, size, label in itertools.product(own, sizes, labels[world]):
-            for strength in strengths[:1] if label == CONTROL else strengths:
+            for strength in strengths[:1] if label in (CONTROL, NOISE) else strengths:
                 specs += [CampaignSpec(world, label, strength, seed, matrix, size) for seed in seeds]
     return specs, notes
 
@@ -198,7 +204,7 @@ def _expand(token: str, world: str) -> list[str]:
         return list(EFFECTS)
     if token == PAIRS:
         return [PAIR_SEP.join(pair) for pair in itertools.combinations(EFFECTS, 2)] if several else []
-    if token in (PAPER, CONTROL):
+    if token in (PAPER, CONTROL, NOISE):
         return [token]
     names = [check_effect(name, field="withheld") for name in token.split(PAIR_SEP)]
     if len(set(names)) < len(names):
