@@ -154,6 +154,8 @@ def test_a_noise_control_needs_a_companion_per_test(tmp_path):
     table = pd.read_csv(folder / "conditions.csv", dtype=str, keep_default_na=False)
     table.loc[table["run_id"] == "T03", "cae_run_id"] = ""
     table.to_csv(folder / "conditions.csv", index=False)
+    before = (folder / "pulses" / "T01.csv").read_bytes()
     with pytest.raises(InputError, match="T03 has no companion") as err:
         make_noise_control(folder, 0)
     assert err.value.field == "cae_run_id"
+    assert (folder / "pulses" / "T01.csv").read_bytes() == before  # checked before any file changed

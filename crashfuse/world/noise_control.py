@@ -54,22 +54,28 @@ def make_noise_control(folder, seed: int, noise_g: float = NOISE_G) -> Path:
     folder = Path(folder)
     campaign = read_campaign(folder)
     conditions = pd.read_csv(folder / "conditions.csv", dtype=str, keep_default_na=False)
+    for test in campaign.tests:  # every test checked before any file changes
+        _check_test(folder, conditions, campaign, test)
     rng = np.random.default_rng(seed)
     for test in campaign.tests:
         companion = campaign.companion(test)
-        if companion is None:
-            raise InputError(f"{folder / 'conditions.csv'}: test {test} has no companion CAE run (cae_run_id); "
-                             "a noise control needs one per test", field="cae_run_id")
-        path = folder / "pulses" / f"{test}.csv"
-        row = conditions.loc[conditions["run_id"] == test]
-        if not path.is_file() or ("pulse_path" in row and row["pulse_path"].iloc[0].strip()):
-            raise InputError(f"{path}: expected the test's CSV pulse (a noise control rewrites it)", field="pulse_path")
         keep = companion.time <= campaign.pulses[test].time[-1] + 1e-9  # the test's own record length
         time, decel = companion.time[keep], companion.decel[keep]
         noise = cfc_filter(rng.normal(0.0, noise_g, time.size + 2 * PAD), float(time[1] - time[0]), NOISE_CFC)
         table = pd.DataFrame({"time_s": time, "decel_g": decel / G0 + noise[PAD:-PAD]})
-        write_text(path, table.to_csv(index=False))
+        write_text(folder / "pulses" / f"{test}.csv", table.to_csv(index=False))
     if "cfc" in conditions:
         conditions.loc[conditions["source"].str.lower() == "test", "cfc"] = str(NOISE_CFC)
         write_text(folder / "conditions.csv", conditions.to_csv(index=False))
     return folder
+
+
+def _check_test(folder: Path, conditions: pd.DataFrame, campaign, test: str) -> None:
+    """A test a noise control can rewrite: a companion CAE run and its own CSV pulse in ``pulses/``."""
+    if campaign.companion(test) is None:
+        raise InputError(f"{folder / 'conditions.csv'}: test {test} has no companion CAE run (cae_run_id); "
+                         "a noise control needs one per test", field="cae_run_id")
+    path = folder / "pulses" / f"{test}.csv"
+    row = conditions.loc[conditions["run_id"] == test]
+    if not path.is_file() or ("pulse_path" in row and row["pulse_path"].iloc[0].strip()):
+        raise InputError(f"{path}: expected the test's CSV pulse (a noise control rewrites it)", field="pulse_path")
