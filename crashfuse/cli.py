@@ -119,6 +119,14 @@ def _world_realism(args) -> int:
     return 0
 
 
+def _world_noise_control(args) -> int:
+    from crashfuse.world.noise_control import make_noise_control
+
+    folder = make_noise_control(args.campaign, args.out, args.seed)
+    print(f"wrote {folder}: the tests of {args.campaign} replaced by their CAE runs plus filtered noise (seed {args.seed})")
+    return 0
+
+
 def _world_validate(args) -> int:
     from crashfuse.world.validation import N_CAE, exactly_right, validate
 
@@ -629,8 +637,8 @@ def _add_world_option(s) -> None:
 def _add_world(sub) -> None:
     w = sub.add_parser("world", help="the synthetic crash world (validation only)")
     wsub = w.add_subparsers(dest="world_command", required=True, parser_class=_Parser)
-    for add in (_add_world_generate, _add_world_calibrate, _add_world_realism, _add_world_validate,
-                _add_world_validate_method):
+    for add in (_add_world_generate, _add_world_calibrate, _add_world_realism, _add_world_noise_control,
+                _add_world_validate, _add_world_validate_method):
         add(wsub)
 
 
@@ -668,6 +676,15 @@ def _add_world_realism(wsub) -> None:
     s = wsub.add_parser("realism", help="CAE-vs-test ISO 18571 and plausibility table of a generated campaign")
     _add_campaign(s)
     s.set_defaults(func=_world_realism)
+
+
+def _add_world_noise_control(wsub) -> None:
+    s = wsub.add_parser("noise-control", help="a campaign's noise control: its tests replaced by their CAE runs "
+                                              "plus filtered measurement noise (docs/method-validation.md)")
+    _add_campaign(s)
+    s.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
+    s.add_argument("--seed", type=_seed, default=0, help="seed of the noise (default 0)")
+    s.set_defaults(func=_world_noise_control)
 
 
 def _add_world_validate(wsub) -> None:

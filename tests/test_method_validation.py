@@ -126,7 +126,8 @@ def test_library_names_the_argument():
 
 def test_the_noise_control_is_each_test_s_own_cae_run_plus_filtered_noise(tmp_path):
     """The control with an exact CAE model: every test is its companion CAE run as read plus noise of
-    0.2-0.3 g rms after CFC 60, with no transient at the record's ends; the CAE runs stay as they were."""
+    about 0.25 g rms after CFC 60, with no transient at the record's ends; the CAE runs stay as they were
+    and the answer key travels with the campaign."""
     import numpy as np
     from crashfuse.io.campaign import read_campaign
     from crashfuse.units import G0
@@ -135,8 +136,9 @@ def test_the_noise_control_is_each_test_s_own_cae_run_plus_filtered_noise(tmp_pa
     made = read_campaign(spec.generate(tmp_path / "noise"))
     plain = read_campaign(mv.CampaignSpec("multibody", "none", "realistic", 0, "table1", 20).generate(tmp_path / "none"))
     assert made.cae == plain.cae and made.tests == plain.tests
-    for run in made.cae[:3]:
-        np.testing.assert_array_equal(made.pulses[run].decel, plain.pulses[run].decel)
+    assert (tmp_path / "noise" / "world.json").read_bytes() == (tmp_path / "none" / "world.json").read_bytes()
+    for run in made.cae[:3]:  # as read, written back at CFC 60: the same to the written digits
+        np.testing.assert_allclose(made.pulses[run].decel, plain.pulses[run].decel, rtol=1e-8, atol=1e-8)
     rms = []
     for test in made.tests:
         assert made.pulses[test].time[-1] == plain.pulses[test].time[-1]  # the test's record length
@@ -154,8 +156,18 @@ def test_a_noise_control_needs_a_companion_per_test(tmp_path):
     table = pd.read_csv(folder / "conditions.csv", dtype=str, keep_default_na=False)
     table.loc[table["run_id"] == "T03", "cae_run_id"] = ""
     table.to_csv(folder / "conditions.csv", index=False)
-    before = (folder / "pulses" / "T01.csv").read_bytes()
     with pytest.raises(InputError, match="T03 has no companion") as err:
-        make_noise_control(folder, 0)
-    assert err.value.field == "cae_run_id"
-    assert (folder / "pulses" / "T01.csv").read_bytes() == before  # checked before any file changed
+        make_noise_control(folder, tmp_path / "noise", 0)
+    assert err.value.field == "cae_run_id" and err.value.file == str(folder / "conditions.csv")
+    assert not (tmp_path / "noise").exists()  # nothing half-written
+
+
+def test_noise_control_command_writes_a_new_campaign_and_refuses_a_full_folder(tmp_path, capsys):
+    from crashfuse.io.campaign import read_campaign
+
+    folder = mv.CampaignSpec("first", "none", "realistic", 0, "table1", 20).generate(tmp_path / "c")
+    assert main(["world", "noise-control", str(folder), "--out", str(tmp_path / "n"), "--seed", "3"]) == 0
+    made, plain = read_campaign(tmp_path / "n"), read_campaign(folder)
+    assert made.tests == plain.tests and made.cae == plain.cae
+    assert main(["world", "noise-control", str(folder), "--out", str(tmp_path / "n")]) == 2
+    assert "not empty" in capsys.readouterr().err

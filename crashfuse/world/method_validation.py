@@ -96,7 +96,7 @@ class CampaignSpec:
         """Write this campaign (with its ``world.json``) into ``folder``."""
         if self.withheld == NOISE:
             dataclasses.replace(self, withheld=CONTROL).generate(folder)
-            return make_noise_control(folder, self.seed)
+            return make_noise_control(folder, folder, self.seed, overwrite=True)
         names = None if self.withheld == PAPER else self.withheld.split(PAIR_SEP)
         preset = PAPER if names is None else "withheld"
         if self.world == "first":
