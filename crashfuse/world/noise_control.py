@@ -53,14 +53,13 @@ def noise_control(campaign: Campaign, seed: int, noise_g: float = NOISE_G) -> Ca
     InputError
         A test without a companion CAE run.
     """
-    for test in campaign.tests:
-        if campaign.companion(test) is None:
-            raise InputError(f"test {test} has no companion CAE run (cae_run_id); a noise control needs one per test",
-                             field="cae_run_id")
     rng = np.random.default_rng(seed)
     pulses = dict(campaign.pulses)
     for test in campaign.tests:
         own, companion = campaign.pulses[test], campaign.companion(test)
+        if companion is None:
+            raise InputError(f"test {test} has no companion CAE run (cae_run_id); a noise control needs one per test",
+                             field="cae_run_id")
         keep = companion.time <= own.time[-1] + 1e-9  # the test's own record length
         time = companion.time[keep]
         noise = cfc_filter(rng.normal(0.0, noise_g, time.size + 2 * PAD), float(time[1] - time[0]), NOISE_CFC)
