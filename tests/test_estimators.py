@@ -42,7 +42,7 @@ ESTIMATORS = [
     # time: the first input; the window keeps the correction on the rows where it is below 0.5; both
     # corrections on, as in the state default.
     OnsetOnRowBlocks(base=_bias_model(), time=operator.itemgetter((slice(None), 0)), window=(0.0, 0.5),
-                     shrink_width=0.1, random_state=0),
+                     shrink_width=0.1),
 ]
 
 

@@ -13,6 +13,7 @@ from sklearn.mixture import GaussianMixture
 from sklearn.preprocessing import StandardScaler
 
 from crashfuse.gp.kriging import KrigingGP
+from crashfuse.gp.replicates import ReplicateMeanGP
 from crashfuse.method.mixture import GMMGPBias
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.hybrid import PhysicsFirst
@@ -33,6 +34,7 @@ TYPES = (
     GaussianMixture,  # GMMGPBias.gmm_
     StandardScaler,  # GMMGPBias.scaler_, KrigingGP's input scaling
     OnsetCorrectedBias,  # the state mode's loading branch
+    ReplicateMeanGP,  # OnsetCorrectedBias.onset_gp_
     PhysicsFirst,  # FittedModel.physics: the hybrid's effect laws
     nominal_time,  # OnsetCorrectedBias.time: functools.partial(nominal_time, columns)
 )

@@ -40,7 +40,7 @@ from crashfuse.signals.domain import displacement_branches, rebound_work
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
 # are refused: refit); a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 9, "surrogate": 2}
+FORMAT = {"model": 10, "surrogate": 2}
 # What a user does about a file of another format.
 _REFIT = {"model": "refit with `crashfuse fit`", "surrogate": "refit with `crashfuse prepare`"}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
@@ -491,8 +491,7 @@ def _fit_branch(data: BiasData, branch: str, config: MethodConfig, seed: int, ro
     if (config.onset or config.shrink) and branch == "loading":
         est = OnsetCorrectedBias(base=est, time=functools.partial(nominal_time, d.columns),
                                  window=ONSET_WINDOW if config.onset else None,
-                                 shrink_width=SHRINK_WIDTH if config.shrink else None, random_state=seed,
-                                 blas_threads=est.blas_threads)
+                                 shrink_width=SHRINK_WIDTH if config.shrink else None)
     try:
         return est.fit(d.X, d.y, d.groups, pooled_gp=pooled_gp)
     except TooFewPointsError as err:  # too few points for K and the GP parameters

@@ -11,7 +11,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, RegressorMixin, clone
 from sklearn.utils.validation import check_array, check_is_fitted, validate_data
 
-from crashfuse.gp.kriging import KrigingGP
+from crashfuse.gp.replicates import ReplicateMeanGP
 from crashfuse.gp.subsets import stratified_subset
 
 __all__ = ["OnsetCorrectedBias", "ONSET_WINDOW", "SHRINK_WIDTH", "shrink_profile"]
@@ -20,9 +20,9 @@ __all__ = ["OnsetCorrectedBias", "ONSET_WINDOW", "SHRINK_WIDTH", "shrink_profile
 # transients locked in time have died out (docs/bias-model.md, "Onset correction").
 ONSET_WINDOW = (0.015, 0.022)
 ONSET_MAX_ROWS = 2500  # rows (stratified per test) of the base model's O(n^3) held-out residuals
-# Early rows (stratified per test) in the correction GP's likelihood; it conditions on every early row.
-# Above every fold of the `paper` campaign (899 rows), below a 44-test library's 1234 (5 s a fit with all).
-ONSET_FIT_ROWS = 1000
+# The correction GP learns per-bin means over the tests (each test's rows are one replicate, not many),
+# in this many bins up to window[1] (1 ms for the state default).
+ONSET_BINS = 22
 # s: width of the Gaussian window over the time since contact in which the held-out shrinkage
 # scales the bias mean - a few ms, the scale of a pulse's bumps (docs/bias-model.md, "Held-out shrinkage").
 SHRINK_WIDTH = 0.005
@@ -44,8 +44,10 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
     - **Onset correction** (``window``): features locked in time after contact (the onset transients
       of structure and instrumentation) move with the impact speed in displacement, so a GP over the
       branch coordinate interpolates them between tests out of phase. A zero-mean GP over the time
-      since contact learns the held-out error left after the shrinkage from the rows earlier than
-      ``window[1]``; its mean is added, whole up to ``window[0]`` and faded out by ``window[1]`` (cos^2).
+      since contact learns what the tests share of the held-out error left after the shrinkage before
+      ``window[1]``: per-bin means over the tests, each with its standard error as noise
+      (:class:`crashfuse.gp.replicates.ReplicateMeanGP`), so one test's correlated noise is shrunk, not
+      followed. Its mean is added, whole up to ``window[0]`` and faded out by ``window[1]`` (cos^2).
 
     Both move the mean only: the latent band and the draws' spread about the mean stay the base
     model's. The test-to-test scatter adds what the shrinkage took off the mean and, while the onset
@@ -65,10 +67,6 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         Width (s, the std of the Gaussian window) of the held-out shrinkage; None: no shrinkage.
     max_rows : int
         At most this many rows (evenly spaced within each test) enter the residuals.
-    blas_threads : int or None
-        BLAS threads of the correction GP.
-    random_state : int, RandomState or None
-        Seeds the correction GP.
 
     Attributes
     ----------
@@ -79,20 +77,17 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         beyond); None without shrinkage or residuals.
     shrink_ : ndarray, shape (n_t,) or None
         The shrinkage factor at ``shrink_times_``, in [0, 1].
-    onset_gp_ : KrigingGP or None
-        The correction GP over time (s); None when fewer than three tests reach the window or
-        the residuals could not be computed (no correction).
+    onset_gp_ : ReplicateMeanGP or None
+        The correction GP over time (s), on per-bin means over the tests with their standard errors; None
+        when fewer than two bins are reached by three tests or the residuals could not be computed (no correction).
     """
 
-    def __init__(self, *, base=None, time=None, window=ONSET_WINDOW, shrink_width=None, max_rows=ONSET_MAX_ROWS,
-                 blas_threads=1, random_state=None):
+    def __init__(self, *, base=None, time=None, window=ONSET_WINDOW, shrink_width=None, max_rows=ONSET_MAX_ROWS):
         self.base = base
         self.time = time
         self.window = window
         self.shrink_width = shrink_width
         self.max_rows = max_rows
-        self.blas_threads = blas_threads
-        self.random_state = random_state
 
     def fit(self, X, y, groups, pooled_gp=None):
         """Fit the base model on every row, then the shrinkage and the onset GP on its held-out residuals.
@@ -126,12 +121,14 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
             self.shrink_times_ = np.arange(0.0, t.max() + SHRINK_STEP, SHRINK_STEP)
             self.shrink_ = shrink_profile(self.shrink_times_, t, y, y - res, self.shrink_width)
             res = y - self._shrunk(t, y - res)
-        if len(np.unique(groups[early])) >= 3:
-            # Up to ONSET_FIT_ROWS early rows enter the likelihood, not 300: on a 300-row subset some
-            # seeds' restarts stop in a flat optimum (no correction).
-            gp = KrigingGP(trend="zero", max_fit_points=ONSET_FIT_ROWS, estimate_scatter=False,
-                           blas_threads=self.blas_threads, random_state=self.random_state)
-            self.onset_gp_ = gp.fit(t[early, None], res[early], groups[early])
+        if self.window is None:
+            return self
+        try:
+            # The tests are the replicates: a GP on per-bin means over the tests, each with its standard
+            # error, follows what the tests share and shrinks what one test's correlated noise shows.
+            self.onset_gp_ = ReplicateMeanGP(self.window[1] / ONSET_BINS).fit(t[early], res[early], groups[early])
+        except ValueError:  # fewer than two bins reached by three tests
+            self.onset_gp_ = None
         return self
 
     @property
@@ -215,9 +212,7 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
         early = t < self.window[1]
         if len(np.unique(groups[early])) < 2:
             return e
-        e_o = self.onset_gp_.grouped_residuals(t[early, None], e[early], groups[early])
-        if e_o is None:
-            return None
+        e_o = self.onset_gp_.grouped_residuals(t[early], e[early], groups[early])
         e[early] -= self._fade(t[early]) * (e[early] - e_o)
         return e
 
