@@ -78,7 +78,7 @@ class ReplicateMeanGP(BaseEstimator):
         Fitted length scale (input units) and signal variance (output units squared).
     """
 
-    _derived_attributes = ("_chol", "_alpha")  # a model file stores the bins and hyperparameters; refactored on use
+    _derived_attributes = ("_chol", "_alpha")  # a model file stores the bins and hyperparameters; refactorised on use
 
     def __init__(self, bin_width, min_groups=3):
         self.bin_width = bin_width
