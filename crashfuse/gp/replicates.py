@@ -56,6 +56,11 @@ def _kernel(a, b, length, sf2):
     return sf2 * np.exp(-0.5 * ((a[:, None] - b[None, :]) / length) ** 2)
 
 
+def _factor(centres, noise, length, sf2):
+    """Cholesky factor (``cho_factor``) of the bin means' covariance: kernel plus each mean's known noise."""
+    return cho_factor(_kernel(centres, centres, length, sf2) + np.diag(noise), lower=True, check_finite=False)
+
+
 class ReplicateMeanGP(BaseEstimator):
     """Zero-mean GP, squared-exponential kernel, on the bin means of replicated groups.
 
@@ -107,7 +112,7 @@ class ReplicateMeanGP(BaseEstimator):
             raise ValueError(f"ReplicateMeanGP needs two bins with {self.min_groups} groups, got {len(self.centres_)}")
         self.noise_ = self._noise(self.spread2_, counts)
         self.length_, self.sf2_ = self._maximise()
-        self._condition(self.centres_, self.means_, self.noise_)
+        self._condition()
         return self
 
     @staticmethod
@@ -117,10 +122,8 @@ class ReplicateMeanGP(BaseEstimator):
         return np.maximum(se2, 1e-6 * max(float(np.median(se2)), np.finfo(float).tiny))
 
     def _nll(self, p):
-        length, sf2 = np.exp(p)
-        K = _kernel(self.centres_, self.centres_, length, sf2) + np.diag(self.noise_)
         try:
-            c = cho_factor(K, lower=True, check_finite=False)
+            c = _factor(self.centres_, self.noise_, *np.exp(p))
         except np.linalg.LinAlgError:
             return 1e300
         return 0.5 * self.means_ @ cho_solve(c, self.means_) + np.log(np.diag(c[0])).sum()
@@ -133,14 +136,13 @@ class ReplicateMeanGP(BaseEstimator):
         best = min(fits, key=lambda r: r.fun)
         return tuple(float(v) for v in np.exp(best.x))
 
-    def _condition(self, centres, means, noise):
-        self._chol = cho_factor(_kernel(centres, centres, self.length_, self.sf2_) + np.diag(noise), lower=True,
-                                check_finite=False)
-        self._alpha = cho_solve(self._chol, means)
+    def _condition(self):
+        self._chol = _factor(self.centres_, self.noise_, self.length_, self.sf2_)
+        self._alpha = cho_solve(self._chol, self.means_)
 
     def _conditioned(self):
-        if "_alpha" not in self.__dict__:
-            self._condition(self.centres_, self.means_, self.noise_)
+        if "_alpha" not in self.__dict__:  # a model file holds the bins and hyperparameters only
+            self._condition()
 
     def predict(self, x, return_std=False, include_noise=False):
         """Mean of the shared function at ``x`` (shape (m,) or (m, 1)); with ``return_std`` its std, and with
@@ -172,7 +174,6 @@ class ReplicateMeanGP(BaseEstimator):
             if len(c) < 2:
                 out[own] = y[own]
                 continue
-            K = _kernel(c, c, self.length_, self.sf2_) + np.diag(self._noise(s2, n))
-            alpha = cho_solve(cho_factor(K, lower=True, check_finite=False), m)
+            alpha = cho_solve(_factor(c, self._noise(s2, n), self.length_, self.sf2_), m)
             out[own] = y[own] - _kernel(x[own], c, self.length_, self.sf2_) @ alpha
         return out
