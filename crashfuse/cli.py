@@ -78,10 +78,7 @@ def _world_generate(args) -> int:
     if args.matrix != "table1" or args.n_tests is not None:
         raise InputError("the first world has the Table 1 matrix only; use --world multibody",
                          field="--matrix" if args.matrix != "table1" else "--n-tests")
-    if args.withhold is not None and len(args.withhold) > 1:
-        raise InputError("the first world withholds one effect at a time; use --world multibody", field="--withhold")
-    withhold = None if args.withhold is None else args.withhold[0]
-    design = resolve(args.preset, withhold, args.strength, parse_overrides(args.effect_param))
+    design = resolve(args.preset, args.withhold, args.strength, parse_overrides(args.effect_param))
     folder = generate(args.out, design, seed=args.seed, **({} if args.n_cae is None else {"n_cae": args.n_cae}))
     print(f"wrote {folder} (preset {design.preset}, withheld {list(design.withheld)}, seed {args.seed})")
     return 0
@@ -653,7 +650,7 @@ def _add_world_generate(wsub) -> None:
     s.add_argument("--n-tests", type=_positive, default=None,
                    help="with --matrix wide: that many tests evenly spaced over 10-37 mph (a test library)")
     s.add_argument("--withhold", nargs="+", default=None, metavar="EFFECT",
-                   help="effect(s) the tests carry and the CAE does not, or none (several: multibody only)")
+                   help="effect(s) the tests carry and the CAE does not, or none")
     s.add_argument("--strength", default="realistic", help="realistic (default) or subtle")
     s.add_argument("--n-cae", type=_positive, default=None,
                    help="Latin-hypercube CAE runs (default 1009; multibody 400)")
@@ -696,8 +693,7 @@ def _add_world_validate(wsub) -> None:
     s.add_argument("--worlds", nargs="+", choices=("first", "multibody"), default=["first"],
                    help="worlds whose campaigns are diagnosed (default first; multibody scores the verdict only)")
     s.add_argument("--pairs", action="store_true",
-                   help="also withhold every pair of the effects together (in the multibody world; the first "
-                        "withholds one at a time)")
+                   help="also withhold every pair of the effects together")
     s.add_argument("--n-cae", type=_positive, default=None,
                    help="CAE runs per campaign besides the companions (default: the harness's N_CAE)")
     s.add_argument("--jobs", type=_positive, default=1,

@@ -232,6 +232,17 @@ def test_withheld_presets_differ_only_in_what_they_withhold():
     assert min(scores) > 0.85
 
 
+def test_a_pair_is_withheld_together_at_its_strength(tmp_path):
+    """Two effects withheld at once: the CAE carries neither, both at the subtle strength, the others
+    shared and realistic (the pairs of ``world validate --pairs``)."""
+    design = resolve(withhold=["damping", "mass"], strength="subtle")
+    assert design.withheld == ("damping", "mass") and design.cae_effects == ("strain_rate", "powertrain", "unloading")
+    assert design.params["damping.c"] == 2.5e3 and design.params["mass.extra"] == 230.0  # both subtle
+    assert design.params["strain_rate.d"] == REALISTIC["strain_rate.d"]
+    world = json.loads((generate(tmp_path / "c", design, seed=0, n_cae=0) / "world.json").read_text())
+    assert {"damping", "mass"} <= set(world["effects"]["test"]) and not {"damping", "mass"} & set(world["effects"]["cae"])
+
+
 def _mean_iso(design, end):
     campaign, _ = build(design, seed=0, n_cae=0)
     return np.mean([iso_score(campaign.pulses[t].time, campaign.pulses[t].decel, campaign.companion(t).time,
@@ -269,6 +280,8 @@ def test_paper_preset_meets_the_realism_bars():
 
 @pytest.mark.parametrize("args, field", [
     (["--withhold", "rust"], "--withhold"),
+    (["--withhold", "mass", "mass"], "--withhold"),
+    (["--withhold", "none", "mass"], "--withhold"),
     (["--preset", "nope"], "--preset"),
     (["--strength", "huge"], "--strength"),
     (["--effect-param", "damping.c=-5"], "--effect-param"),

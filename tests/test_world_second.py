@@ -216,8 +216,8 @@ def test_bad_arguments_exit_2_naming_the_argument_and_write_nothing(tmp_path, ca
 
 
 def test_first_world_refuses_multibody_only_options(tmp_path, capsys):
-    assert main(["world", "generate", "--out", str(tmp_path / "x"), "--withhold", "mass", "damping"]) == 2
-    assert "--withhold" in capsys.readouterr().err
+    assert main(["world", "generate", "--out", str(tmp_path / "x"), "--matrix", "wide"]) == 2
+    assert "--matrix" in capsys.readouterr().err
 
 
 def test_parse_overrides():

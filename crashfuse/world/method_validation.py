@@ -4,9 +4,8 @@ The method's counterpart of :mod:`crashfuse.world.validation`. A spread of campa
 test matrix x CAE design size x withheld effects x strength x seed - is generated into a work
 folder, :func:`crashfuse.evaluation.loto.evaluate` runs on each, and one table rates every model
 against the CAE: mean ISO/TS 18571 overall per window, the test-windows it loses to CAE (by more
-than :data:`LOSS_MARGINS`), its worst margin and its band coverage. The first world withholds one
-effect at a time and has the Table 1 matrix only; its share of the spread skips pairs and the
-wide matrix (the table's notes say so). Campaigns and evaluations are kept in the work folder
+than :data:`LOSS_MARGINS`), its worst margin and its band coverage. The first world has the
+Table 1 matrix only; its share of the spread skips the wide matrix (the table's notes say so). Campaigns and evaluations are kept in the work folder
 under a key of everything that makes them, and reused when present (resume); after a change of
 the method, clear the work folder's ``evaluations``.
 """
@@ -42,7 +41,6 @@ STRENGTHS = ("realistic", "subtle")
 MATRICES = second_presets.MATRICES  # the first world has table1 only
 # Test matrices and withheld sets each world can make.
 WORLD_MATRICES = {"first": ("table1",), "multibody": second_presets.MATRICES}
-WORLD_WITHHOLDS_SEVERAL = {"first": False, "multibody": True}
 # Withheld tokens: groups expanding to every single effect / every pair (where the world can).
 SINGLE, PAIRS, PAPER, CONTROL = "single", "pairs", "paper", "none"
 NOISE = "noise"  # the control with an exact CAE model: tests are their CAE runs plus noise (world.noise_control)
@@ -100,7 +98,7 @@ class CampaignSpec:
         names = None if self.withheld == PAPER else self.withheld.split(PAIR_SEP)
         preset = PAPER if names is None else "withheld"
         if self.world == "first":
-            design = first_presets.resolve(preset, None if names is None else names[0], self.strength)
+            design = first_presets.resolve(preset, names, self.strength)
             return first_generate.generate(folder, design, seed=self.seed, n_cae=self.n_cae)
         design = second_presets.resolve(preset, names, self.strength)
         return second_generate.generate(folder, design, seed=self.seed, n_cae=self.n_cae, matrix=self.matrix)
@@ -122,8 +120,8 @@ def plan(worlds=DEFAULTS["worlds"], withheld=DEFAULTS["withheld"], strengths=DEF
     ----------
     worlds : sequence of {"first", "multibody"}
     withheld : sequence of str
-        ``single`` (every catalogue effect), ``pairs`` (every pair, where the world withholds
-        several), ``paper``, ``none`` (the control), an effect, or effects joined by ``+``.
+        ``single`` (every catalogue effect), ``pairs`` (every pair), ``paper``, ``none`` (the
+        control), an effect, or effects joined by ``+``.
     strengths : sequence of {"realistic", "subtle"}
         The control withholds nothing: it runs at the first strength only.
     seeds : sequence of int >= 0
@@ -139,16 +137,15 @@ def plan(worlds=DEFAULTS["worlds"], withheld=DEFAULTS["withheld"], strengths=DEF
     Raises
     ------
     InputError
-        An unknown world, token, effect, strength or matrix, a bad seed or size, a set of effects a
-        selected world cannot withhold, or a world left without any matrix; naming the argument.
+        An unknown world, token, effect, strength or matrix, a bad seed or size, an effect named
+        twice, or a world left without any matrix; naming the argument.
     """
     worlds = _choices(worlds, WORLDS, "worlds")
     strengths = _choices(strengths, STRENGTHS, "strengths")
     matrices = _choices(matrices, MATRICES, "matrices")
     seeds = _counts(seeds, "seeds", minimum=0)
     sizes = _counts(n_cae, "n_cae", minimum=1)
-    withheld = _as_tuple(withheld)
-    labels = _withheld_labels(withheld, worlds)
+    labels = _withheld_labels(_as_tuple(withheld))
     specs, notes = [], []
     for world in worlds:
         own = [m for m in matrices if m in WORLD_MATRICES[world]]
@@ -158,9 +155,7 @@ def plan(worlds=DEFAULTS["worlds"], withheld=DEFAULTS["withheld"], strengths=DEF
         if len(own) < len(matrices):
             notes.append(f"{world} world: matrix {', '.join(m for m in matrices if m not in own)} skipped "
                          f"(it has {', '.join(WORLD_MATRICES[world])} only)")
-        if PAIRS in withheld and not WORLD_WITHHOLDS_SEVERAL[world]:
-            notes.append(f"{world} world: pairs skipped (it withholds one effect at a time)")
-        for matrix, size, label in itertools.product(own, sizes, labels[world]):
+        for matrix, size, label in itertools.product(own, sizes, labels):
             for strength in strengths[:1] if label in (CONTROL, NOISE) else strengths:
                 specs += [CampaignSpec(world, label, strength, seed, matrix, size) for seed in seeds]
     return specs, notes
@@ -187,31 +182,23 @@ def _as_tuple(values) -> tuple:
     return (values,) if isinstance(values, (str, int, np.integer)) else tuple(values)
 
 
-def _withheld_labels(tokens, worlds) -> dict:
-    """Per world, the withheld labels of ``tokens`` in order (see :func:`plan`)."""
+def _withheld_labels(tokens) -> list[str]:
+    """The withheld labels of ``tokens`` in order (see :func:`plan`)."""
     if not tokens:
         raise InputError("expected withheld effects or groups, got none", field="withheld")
-    out = {world: [] for world in worlds}
-    for token in tokens:
-        for world in worlds:
-            out[world] += _expand(token, world)
-    return {world: list(dict.fromkeys(labels)) for world, labels in out.items()}
+    return list(dict.fromkeys(label for token in tokens for label in _expand(token)))
 
 
-def _expand(token: str, world: str) -> list[str]:
-    several = WORLD_WITHHOLDS_SEVERAL[world]
+def _expand(token: str) -> list[str]:
     if token == SINGLE:
         return list(EFFECTS)
     if token == PAIRS:
-        return [PAIR_SEP.join(pair) for pair in itertools.combinations(EFFECTS, 2)] if several else []
+        return [PAIR_SEP.join(pair) for pair in itertools.combinations(EFFECTS, 2)]
     if token in (PAPER, CONTROL, NOISE):
         return [token]
     names = [check_effect(name, field="withheld") for name in token.split(PAIR_SEP)]
     if len(set(names)) < len(names):
         raise InputError(f"expected distinct effects, got {token!r}", field="withheld")
-    if len(names) > 1 and not several:
-        raise InputError(f"the {world} world withholds one effect at a time, got {token!r} (several: the "
-                         f"{' or '.join(w for w in WORLDS if WORLD_WITHHOLDS_SEVERAL[w])} world)", field="withheld")
     return [PAIR_SEP.join(sorted(names, key=EFFECTS.index))]
 
 

@@ -5,8 +5,9 @@ every other effect is on both sides with the same parameters. So
 
 * ``paper``: withheld = [strain_rate, powertrain] (the paper's situation: a CAE model with a rigid
   powertrain and rate-independent material);
-* ``withheld`` with ``withhold=EFFECT``: withheld = [EFFECT]; with ``withhold="none"`` nothing is
-  withheld (the control: tests differ from CAE only by measurement realism).
+* ``withheld`` with ``withhold=[EFFECT, ...]``: those effects (one, or a pair, ...); with
+  ``withhold="none"`` nothing is withheld (the control: tests differ from CAE only by measurement
+  realism).
 
 ``strength`` ("realistic" or "subtle") sets the magnitude of the withheld effects; shared effects
 are always realistic, so a campaign differs from the control only in what it withholds.
@@ -87,17 +88,19 @@ class Design:
         return tuple(e for e in EFFECTS if e not in self.withheld)
 
 
-def resolve(preset: str | None = None, withhold: str | None = None, strength: str = "realistic",
+def resolve(preset: str | None = None, withhold=None, strength: str = "realistic",
             overrides: dict | None = None) -> Design:
-    """Resolve the CLI choices into a :class:`Design`.
+    """Resolve the command-line choices into a :class:`Design`.
 
     Parameters
     ----------
     preset : {"paper", "withheld"} or None
         None means ``withheld`` if ``withhold`` is given, else ``paper``.
-    withhold : str or None
-        A catalogue effect or "none" (``withheld`` preset only).
+    withhold : str or sequence of str, optional
+        Catalogue effects withheld from the CAE (distinct: one, a pair, ...), or ``"none"`` alone
+        (``withheld`` preset only).
     strength : {"realistic", "subtle"}
+        Magnitude of the withheld effects (shared effects stay realistic).
     overrides : dict, optional
         ``effect.param`` values replacing the named strength's (see
         :func:`crashfuse.world.effects.parse_overrides`).
@@ -107,22 +110,37 @@ def resolve(preset: str | None = None, withhold: str | None = None, strength: st
     InputError
         Unknown preset, effect or strength, or a combination that does not fit.
     """
-    if preset is None:
-        preset = "paper" if withhold is None else "withheld"
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; expected one of {PRESETS}", field="preset")
-    if preset == "paper":
-        if withhold is not None:
-            raise InputError("the paper preset withholds strain_rate and powertrain; use the withheld preset "
-                             "to withhold another effect", field="withhold")
-        withheld = PAPER_WITHHELD
-    elif withhold is None:
-        raise InputError(f"the withheld preset needs an effect to withhold ({'|'.join(EFFECTS)}|none)",
-                         field="withhold")
-    else:
-        withheld = () if withhold == "none" else (check_effect(withhold, field="withhold"),)
+    preset, withheld = withheld_effects(preset, withhold)
     params = {**params_at_strength(strength, withheld), **(overrides or {})}
-    return Design(preset, tuple(withheld), strength, params)
+    return Design(preset, withheld, strength, params)
+
+
+def withheld_effects(preset: str | None, withhold) -> tuple[str, tuple]:
+    """The preset and the effects it withholds from the CAE, checked (both worlds' presets).
+
+    ``withhold`` is a catalogue effect, a sequence of distinct ones, ``"none"`` alone or None (the
+    ``paper`` preset's :data:`PAPER_WITHHELD`). Raises :class:`InputError` naming ``preset`` or
+    ``withhold``."""
+    names = [withhold] if isinstance(withhold, str) else list(withhold or [])
+    if preset is None:
+        preset = "withheld" if names else "paper"
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}", field="preset")
+    if preset == "paper":
+        if names:
+            raise InputError("the paper preset withholds strain_rate and powertrain; use the withheld preset "
+                             "to withhold other effects", field="withhold")
+        return preset, PAPER_WITHHELD
+    if not names:
+        raise InputError(f"the withheld preset needs effects to withhold ({'|'.join(EFFECTS)}|none)", field="withhold")
+    if "none" in names:
+        if len(names) > 1:
+            raise InputError(f"'none' withholds nothing and stands alone, got {' '.join(names)}", field="withhold")
+        return preset, ()
+    withheld = tuple(check_effect(n, field="withhold") for n in names)
+    if len(set(withheld)) < len(withheld):
+        raise InputError(f"expected distinct effects, got {' '.join(names)}", field="withhold")
+    return preset, withheld
 
 
 def table1_tests() -> pd.DataFrame:

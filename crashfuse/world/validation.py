@@ -4,9 +4,8 @@ For every catalogue effect, and for the control (nothing withheld), at each stre
 campaign from the world whose tests carry the effect and whose CAE runs do not; the diagnosis
 (which sees only the campaign files) must put the withheld effect first, add nothing else, leave
 the control empty, recover the effect's headline quantities (:mod:`crashfuse.catalogue`) within
-:data:`TOLERANCE` and shrink the gap. With ``pairs`` (a world that withholds several effects at
-once) every pair of the effects is withheld together as well: the verdict must name both
-(``all_named``), in either order, and no third. The answer key comes from the campaign's
+:data:`TOLERANCE` and shrink the gap. With ``pairs`` every pair of the effects is withheld
+together as well: the verdict must name both (``all_named``), in either order, and no third. The answer key comes from the campaign's
 ``world.json``: the world's laws compute the same headline quantities from it (:func:`true_headline`).
 """
 
@@ -30,7 +29,7 @@ from crashfuse.io.campaign import read_campaign
 from crashfuse.world import effects as world_effects
 from crashfuse.world import generate as first_generate, presets as first_presets
 from crashfuse.world.generate import WORLD_JSON
-from crashfuse.world.method_validation import PAIR_SEP, WORLD_WITHHOLDS_SEVERAL
+from crashfuse.world.method_validation import PAIR_SEP
 from crashfuse.world.multibody import effects as second_effects, generate as second_generate, presets as second_presets
 
 TOLERANCE = {"realistic": 0.25, "subtle": 0.50}  # relative error allowed on a headline quantity
@@ -71,7 +70,7 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
     diagnosis', they are reported, not required (issue 19)."""
     resolve, generate = WORLDS[world]
     expected = [] if withheld == "none" else withheld.split(PAIR_SEP)
-    design = resolve("withheld", withhold=expected if len(expected) > 1 else withheld, strength=strength)
+    design = resolve("withheld", withhold=expected or "none", strength=strength)
     generate(folder, design, seed=seed, n_cae=n_cae)
     campaign = read_campaign(folder)
     answer = json.loads((folder / WORLD_JSON).read_text())
@@ -110,7 +109,7 @@ def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,)
              progress=print, n_cae: int = N_CAE, worlds=("first",), pairs: bool = False,
              n_jobs: int = 1) -> pd.DataFrame:
     """The validation matrix: ``worlds`` x (``effects`` withheld + control, and with ``pairs`` every
-    pair of ``effects`` withheld together where the world can) x strengths x seeds,
+    pair of ``effects`` withheld together) x strengths x seeds,
     each diagnosed with ``candidates`` on campaigns of ``n_cae`` CAE runs, ``n_jobs`` campaigns at
     once (worker processes: the same verdicts with any); writes validation.csv and validation.md
     into ``out``.
@@ -150,7 +149,7 @@ def _campaigns(worlds, effects, strengths, seeds, pairs=False):
     both = [PAIR_SEP.join(pair) for pair in itertools.combinations(effects, 2)] if pairs else []
     for world in worlds:
         for strength in strengths:
-            for withheld in (*effects, *(both if WORLD_WITHHOLDS_SEVERAL[world] else ()), "none"):
+            for withheld in (*effects, *both, "none"):
                 for seed in seeds:
                     if withheld != "none" or strength == strengths[0]:
                         yield world, strength, withheld, seed

@@ -18,14 +18,11 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.errors import InputError
 from crashfuse.units import LB, MPH
 from crashfuse.world.multibody.effects import params_at_strength
-from crashfuse.world.presets import TABLE1, Design, table1_tests
+from crashfuse.world.presets import TABLE1, Design, table1_tests, withheld_effects
 
-PRESETS = ("paper", "withheld")
-PAPER_WITHHELD = ("strain_rate", "powertrain")
 MATRICES = ("table1", "wide")
 N_CAE = 400
 WIDE_SPEEDS_MPH = (10.0, 11.5, 13.0, 16.0, 19.0, 22.0, 25.0, 28.0, 31.0, 34.0, 37.0)
@@ -35,39 +32,9 @@ WIDE_CONFIGS = (("Type I", "FWD"), ("Type II", "AWD"), ("Type I", "AWD"))
 
 def resolve(preset: str | None = None, withhold=None, strength: str = "realistic",
             overrides: dict | None = None) -> Design:
-    """Resolve the command-line choices into a :class:`Design`.
-
-    Parameters
-    ----------
-    preset : {"paper", "withheld"} or None
-        None means ``withheld`` if ``withhold`` is given, else ``paper``.
-    withhold : str or sequence of str, optional
-        Catalogue effects withheld from the CAE (distinct), or ``"none"`` alone.
-    strength : {"realistic", "subtle"}
-        Magnitude of the withheld effects (shared effects stay realistic).
-    overrides : dict, optional
-        ``effect.param`` values replacing the strength's.
-    """
-    names = [withhold] if isinstance(withhold, str) else list(withhold or [])
-    if preset is None:
-        preset = "withheld" if names else "paper"
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r}; expected one of {', '.join(PRESETS)}", field="preset")
-    if preset == "paper":
-        if names:
-            raise InputError("the paper preset withholds strain_rate and powertrain; use the withheld preset "
-                             "to withhold other effects", field="withhold")
-        withheld = PAPER_WITHHELD
-    elif not names:
-        raise InputError(f"the withheld preset needs effects to withhold ({'|'.join(EFFECTS)}|none)", field="withhold")
-    elif "none" in names:
-        if len(names) > 1:
-            raise InputError(f"'none' withholds nothing and stands alone, got {' '.join(names)}", field="withhold")
-        withheld = ()
-    else:
-        withheld = tuple(check_effect(n, field="withhold") for n in names)
-        if len(set(withheld)) < len(withheld):
-            raise InputError(f"expected distinct effects, got {' '.join(names)}", field="withhold")
+    """Resolve the command-line choices into a :class:`Design` (as the first world's
+    :func:`crashfuse.world.presets.resolve`, with this world's laws' parameters)."""
+    preset, withheld = withheld_effects(preset, withhold)
     params = {**params_at_strength(strength, withheld), **(overrides or {})}
     return Design(preset, withheld, strength, params)
 
