@@ -527,6 +527,22 @@ def test_a_later_effect_must_be_needed_beyond_the_chosen_ones_refitted(tmp_path)
     assert unloading["round"] == 2 and "not needed beyond powertrain" in unloading["refused_because"]
 
 
+@pytest.mark.slow
+def test_an_earlier_pick_that_a_later_one_makes_unneeded_leaves_the_verdict():
+    """First world, damping + powertrain withheld (realistic, seed 0): round 1 reads the damping's
+    force growing with crush speed as rate hardening, round 2 adds powertrain, round 3 damping -
+    after which strain_rate moves no held-out prediction. It leaves the verdict (strain_rate
+    powertrain damping without the check: docs/decisions.md, section 43)."""
+    campaign, _ = build(resolve("withheld", withhold=("damping", "powertrain")), seed=0, n_cae=N_PAIR_CAE)
+    diag = diagnose(campaign, effects=("strain_rate", "powertrain", "damping"), residual_model=False, regions=False,
+                    progress=None)
+    assert diag.verdict == ["powertrain", "damping"]
+    rate = next(e for e in diag.to_json()["effects"] if e["effect"] == "strain_rate")
+    assert not rate["chosen"] and rate["evidence"]["refused_because"].startswith("dropped in round 3")
+    chosen = diag.candidates["powertrain"].fits
+    assert chosen.effects == ("powertrain", "damping") and diag.heldout_mse_ratio < 0.1
+
+
 def _second_world_subtle_engine(tmp_path, seed):
     from crashfuse.io.campaign import read_campaign
     from crashfuse.world.multibody.generate import generate

@@ -95,12 +95,7 @@ class Diagnosis:
     holdout: bool
     gap: object = None  # crashfuse.diagnosis.gap.GapMap (None for a single test)
     pairs: list = dataclasses.field(default_factory=list)  # the pairs of effects tried (:func:`_pair_round`)
-
-    @property
-    def heldout_mse_ratio(self) -> float:
-        """Held-out mean squared error of CAE + the verdict's effects against CAE's, over every fold."""
-        return float(np.prod([c.ratio for c in {self.candidates[e].round: self.candidates[e]
-                                                for e in self.verdict}.values()]))
+    heldout_mse_ratio: float = 1.0  # held-out MSE of CAE + the verdict's effects over CAE's, every fold
 
     def to_json(self) -> dict:
         mean = self.shrink.groupby(["model", "window_ms"], sort=False)["overall"].mean()
@@ -182,15 +177,15 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     cae = fit_folds(case, (), sets)
     rule = _rule(threshold, alpha, move, holdout)
     chosen, candidates, pairs, current = _select(case, sets, cae, effects, rule, n_jobs, say)
-    preds = {"CAE": predict(case, cae, _fold_rows(n), range(n))[0],
-             "CAE+effects": predict(case, current, _fold_rows(n), range(n))[0]}
+    (cae_pred, cae_mse), (fx_pred, fx_mse) = (_heldout(case, fits) for fits in (cae, current))
+    preds = {"CAE": cae_pred, "CAE+effects": fx_pred}
     residual = _residual_config(k, inputs, random_state, fold_models) if holdout and residual_model else None
     shrink = _shrink(campaign, case, preds, current, residual, fold_models, n_samples, surrogate, n_jobs, say)
     settings = dict(effects=list(effects), threshold=threshold, alpha=alpha, move=move, k=k, inputs=inputs,
                     n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware)
     gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
     return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap,
-                     pairs)
+                     pairs, float(fx_mse.sum() / cae_mse.sum()))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,12 +202,13 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
     """Greedy forward selection on held-out evidence over the training ``sets`` of ``cae``, a round's
     candidates fitted on ``n_jobs`` processes; ``rule`` holds :func:`crashfuse.diagnosis.evidence.judge`'s
     threshold, alpha and move. A round adds the best-supported single effect or, when none qualifies,
-    the best-supported pair (:func:`_pair_round`). Returns (chosen, candidates, pairs tried, final fits)."""
+    the best-supported pair (:func:`_pair_round`); an effect chosen before that the round's makes
+    unneeded leaves (:func:`_drop_unneeded`). Returns (chosen, candidates, pairs tried, final fits)."""
     base = _Base((), cae, *_heldout(case, cae)[::-1])
-    candidates, pairs = {}, []
+    candidates, pairs, dropped = {}, [], set()
     say(f"diagnose: {len(case.test_ids)} tests, CAE held-out rms {_rms_g(base.mse):.3f} g")
     for rnd in itertools.count(1):
-        remaining = [e for e in effects if e not in base.chosen]
+        remaining = [e for e in effects if e not in base.chosen and e not in dropped]
         if not remaining:
             break
         round_fits = Parallel(n_jobs=n_jobs)(delayed(fit_folds)(case, (*base.chosen, e), sets,
@@ -239,6 +235,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
         for c in added:
             c.chosen = True
             candidates[c.effect] = c
+        base = _drop_unneeded(case, sets, rule, say, rnd, base, candidates, dropped)
     for e in base.chosen:  # read as fitted together: the model of the shrink table, not its round's fit
         candidates[e].fits = base.fits
     say(f"diagnose: verdict {list(base.chosen) or 'none'}")
@@ -259,6 +256,28 @@ def _needed_best(case, sets, rule, say, rnd, base: _Base, candidates: dict, name
         c.evidence = dataclasses.replace(c.evidence, accepted=False, reason=reason)
         say(f"diagnose: round {rnd} +{best} refused: {reason}")
     return best
+
+
+def _drop_unneeded(case, sets, rule, say, rnd, base: _Base, candidates: dict, dropped: set) -> _Base:
+    """``base`` without the effects chosen in earlier rounds that the later ones make unneeded: each
+    must still be needed, by the evidence rule, beyond the others refitted from ``base``'s values
+    (:func:`_alone`). Two laws can take up one gap in turn - a force growing with crush speed read
+    first as rate hardening, then damping - and the first pick must not stay by its order alone
+    (docs/decisions.md, section 43). A dropped effect joins ``dropped`` and is not tried again."""
+    latest = max(candidates[e].round for e in base.chosen)
+    for e in [e for e in base.chosen if candidates[e].round < latest]:
+        rest = tuple(x for x in base.chosen if x != e)
+        alone = _alone(case, sets, base.fits, rest)
+        needed = _judged(case, base.fits, (e,), alone, rule)[2]
+        if needed.accepted:
+            continue
+        c = candidates[e]
+        reason = f"dropped in round {rnd}: not needed beyond {' '.join(rest)} refitted: {needed.reason}"
+        c.chosen, c.evidence = False, dataclasses.replace(c.evidence, accepted=False, reason=reason)
+        say(f"diagnose: {e} {reason}")
+        dropped.add(e)
+        base = alone
+    return base
 
 
 def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
@@ -307,16 +326,17 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
     return best[0], tried, best[1]
 
 
-def _alone(case: TestCase, sets, pair: FoldFits, effects, single: FoldFits) -> _Base:
+def _alone(case: TestCase, sets, pair: FoldFits, effects, single: FoldFits | None = None) -> _Base:
     """``effects`` (a pair's fit without one member) fitted as well as the search can: per training
-    set the better of ``single``, their fit in the round, and a refit from the pair's values - a
-    single fit stuck in a worse optimum must not make the dropped member look needed."""
+    set the better of ``single``, their fit in the round (if any), and a refit from the pair's values -
+    a single fit stuck in a worse optimum must not make the dropped member look needed."""
     names = {p.name for p in parameters_to_fit(case, effects)}
     keep = [i for i, p in enumerate(pair.params) if p.name in names]
-    refit = fit_folds(case, effects, sets, start=pair.theta[:, keep])
-    take = refit.cost < single.cost
-    fits = dataclasses.replace(single, theta=np.where(take[:, None], refit.theta, single.theta),
-                               cost=np.minimum(refit.cost, single.cost))
+    fits = refit = fit_folds(case, effects, sets, start=pair.theta[:, keep])
+    if single is not None:
+        take = refit.cost < single.cost
+        fits = dataclasses.replace(single, theta=np.where(take[:, None], refit.theta, single.theta),
+                                   cost=np.minimum(refit.cost, single.cost))
     pred, mse = _heldout(case, fits)
     return _Base(tuple(effects), fits, mse, pred)
 
