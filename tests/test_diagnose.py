@@ -12,7 +12,7 @@ import pytest
 from crashfuse.catalogue import EFFECTS, V_REF
 from crashfuse.method import effect_fit as ef
 from crashfuse.cli import main
-from crashfuse.diagnosis.diagnose import Candidate, diagnose, markdown, write_diagnosis
+from crashfuse.diagnosis.diagnose import Candidate, _bounded, diagnose, markdown, write_diagnosis
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, permutation_test, sign_test
 from crashfuse.signals.dynamics import State
 from crashfuse.method.laws import LINK_DAMPING_RATIO, _Link, decel_fn, headline, parameters
@@ -389,6 +389,10 @@ def test_a_law_at_its_upper_bound_is_flagged(case):
     upper = params[0].upper
     at_bound = ef.FoldFits(("mass",), params, np.array([[0.5 * upper], [upper]]), np.zeros(2))
     assert Candidate("mass", 1, at_bound, np.ones(2), np.ones(2), _tie(2), []).at_upper_bound == ["mass.extra"]
+    # evidence that would add it is refused, with the reason in diagnosis.json
+    better = judge(np.ones(11), np.full(11, 0.5), np.ones(11), np.ones(11), threshold=0.1)
+    refused = _bounded(Candidate("mass", 1, at_bound, np.ones(2), np.ones(2), better, [])).evidence
+    assert better.accepted and not refused.accepted and refused.reason == "at a physical bound: mass.extra"
     inside = ef.FoldFits(("mass",), params, np.array([[upper], [0.5 * upper]]), np.zeros(2))
     # the all-tests row decides
     assert Candidate("mass", 1, inside, np.ones(2), np.ones(2), _tie(2), []).at_upper_bound == []
@@ -468,13 +472,13 @@ def test_a_candidate_losing_on_the_folds_it_acts_on_is_refused():
 
 
 def test_a_refused_candidate_does_not_hide_a_supported_one():
-    """A round adds the lowest-error candidate among those accepted and not at a physical bound."""
+    """A round adds the lowest-error candidate among those accepted (mass: refused at a physical bound)."""
     from types import SimpleNamespace
     from crashfuse.diagnosis.diagnose import best_supported
 
     def cand(ratio, accepted, bound=()):
         return SimpleNamespace(ratio=ratio, evidence=SimpleNamespace(accepted=accepted), at_upper_bound=list(bound))
-    round_ = {"damping": cand(0.53, False), "unloading": cand(0.62, True), "mass": cand(0.40, True, ["mass.extra"]),
+    round_ = {"damping": cand(0.53, False), "unloading": cand(0.62, True), "mass": cand(0.40, False, ["mass.extra"]),
               "strain_rate": cand(0.70, True)}
     assert best_supported(round_, round_) == "unloading"  # damping has the lowest error, 5 of 11 folds better
     assert best_supported(round_, ["damping", "mass"]) is None

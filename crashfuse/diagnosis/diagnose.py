@@ -218,7 +218,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
         for e, fits in zip(remaining, round_fits):
             pred, mse, ev = _judged(case, fits, (e,), base, rule)
             singles[e] = _Base((*base.chosen, e), fits, mse, pred)
-            candidates[e] = c = Candidate(e, rnd, fits, mse, base.mse, ev, _acts_on(case, ev))
+            candidates[e] = c = _bounded(Candidate(e, rnd, fits, mse, base.mse, ev, _acts_on(case, ev)))
             say(f"  round {rnd} +{e}: {_evidence_line(case, c)}")
         for e in remaining:
             if not candidates[e].evidence.accepted:
@@ -363,13 +363,22 @@ def _evidence_line(case: TestCase, c: Candidate) -> str:
 
 def best_supported(candidates: dict, names) -> str | None:
     """The effect of ``names`` a round adds: the lowest held-out error among the candidates whose
-    evidence is accepted and whose fit is not at a physical bound; None when there is none.
+    evidence is accepted (:func:`_bounded`: not at a physical bound); None when there is none.
 
     Not simply the lowest error: a candidate that lowers the error on some folds and raises it on
     others (two effects withheld, one fitted alone) must not hide one that lowers it consistently.
     """
-    supported = [e for e in names if candidates[e].evidence.accepted and not candidates[e].at_upper_bound]
+    supported = [e for e in names if candidates[e].evidence.accepted]
     return min(supported, key=lambda e: candidates[e].ratio, default=None)
+
+
+def _bounded(c: Candidate) -> Candidate:
+    """``c``, refused when one of its own parameters sits at an upper bound that is a physical limit:
+    the law needed more than is physical (diagnosis.json says so, as for a pair)."""
+    if c.evidence.accepted and c.at_upper_bound:
+        reason = f"at a physical bound: {', '.join(c.at_upper_bound)}"
+        c.evidence = dataclasses.replace(c.evidence, accepted=False, reason=reason)
+    return c
 
 
 def _sole_note(case: TestCase, ev: Evidence) -> str:
