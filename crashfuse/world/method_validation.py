@@ -5,9 +5,10 @@ test matrix x CAE design size x withheld effects x strength x seed - is generate
 folder, :func:`crashfuse.evaluation.loto.evaluate` runs on each, and one table rates every model
 against the CAE: mean ISO/TS 18571 overall per window, the test-windows it loses to CAE (by more
 than :data:`LOSS_MARGINS`), its worst margin and its band coverage. The first world has the
-Table 1 matrix only; its share of the spread skips the wide matrix (the table's notes say so). Campaigns and evaluations are kept in the work folder
-under a key of everything that makes them, and reused when present (resume); after a change of
-the method, clear the work folder's ``evaluations``.
+Table 1 matrix only; its share of the spread skips the wide matrix (the table's notes say so).
+Campaigns and evaluations are kept in the work folder under a key of everything that makes them,
+and reused when present (resume); after a change of the method, clear the work folder's
+``evaluations``.
 """
 
 from __future__ import annotations
@@ -39,9 +40,9 @@ from crashfuse.world.noise_control import make_noise_control
 WORLDS = ("first", "multibody")
 STRENGTHS = ("realistic", "subtle")
 MATRICES = second_presets.MATRICES  # the first world has table1 only
-# Test matrices and withheld sets each world can make.
+# Test matrices each world can make.
 WORLD_MATRICES = {"first": ("table1",), "multibody": second_presets.MATRICES}
-# Withheld tokens: groups expanding to every single effect / every pair (where the world can).
+# Withheld tokens: groups expanding to every single effect / every pair.
 SINGLE, PAIRS, PAPER, CONTROL = "single", "pairs", "paper", "none"
 NOISE = "noise"  # the control with an exact CAE model: tests are their CAE runs plus noise (world.noise_control)
 PAIR_SEP = "+"
