@@ -160,15 +160,18 @@ def rollout(decel_fn: DecelFn, v0, dt: float, n_steps: int, n_samples: int = 1) 
         s_new = position_step(s, v, a, dt)
         # A sample stops loading at the first step its displacement does not advance (v ~ 0).
         loading = loading & (s_new > s_max)
-        s_max = np.where(loading, s_new, s_max)
+        # While every sample loads (most steps of a batch) the branch bookkeeping is the identity: skipped.
+        all_loading = loading.all()
+        s_max = s_new if all_loading else np.where(loading, s_new, s_max)
         v_pred = v - a * dt
         state = State(s_new, v_pred, np.maximum(s_max - s_new, 0.0), s_max, loading, i, i * dt)
-        a_new = _decel(decel_fn, state, loading, separated, m)
+        a_new = _decel(decel_fn, state, loading, separated, m, all_loading)
         v = velocity_step(v, a, a_new, dt)
         s, a = s_new, a_new
-        separated |= ~loading & (a_new <= 0) & (v < 0)
         out_s[:, i], out_v[:, i], out_a[:, i] = s, v, a
-        out_unloading[:, i], out_separated[:, i] = ~loading, separated
+        if not all_loading:
+            separated |= ~loading & (a_new <= 0) & (v < 0)
+            out_unloading[:, i], out_separated[:, i] = ~loading, separated
     out_b = np.where(out_separated, Trajectory.SEPARATED,  # the branch codes once, not per step
                      np.where(out_unloading, Trajectory.UNLOADING, Trajectory.LOADING)).astype(np.int8)
     return Trajectory(np.arange(n) * dt, out_s, out_v, out_a, out_b, s_max)
@@ -183,13 +186,16 @@ def _initial_speed(v0, n_samples: int) -> np.ndarray:
     return v.copy()
 
 
-def _decel(decel_fn: DecelFn, state: State, loading, separated, m: int) -> np.ndarray:
-    """The deceleration at ``state`` with the barrier's constraints applied, shape (m,)."""
+def _decel(decel_fn: DecelFn, state: State, loading, separated, m: int, all_loading: bool = False) -> np.ndarray:
+    """The deceleration at ``state`` with the barrier's constraints applied, shape (m,) (none while
+    ``all_loading``: no sample unloads or has separated)."""
     a = np.asarray(decel_fn(state), dtype=float)
     if a.shape != (m,):
         raise InputError(f"decel_fn must return shape ({m},), got {a.shape}", field="decel_fn")
     if not np.isfinite(a).all():
         raise InputError(f"decel_fn returned a non-finite deceleration at step {state.step}", field="decel_fn")
+    if all_loading:
+        return a
     # The barrier cannot pull: on unloading the deceleration is >= 0, and 0 after separation.
     a = np.where(loading, a, np.maximum(a, 0.0))
     return np.where(separated, 0.0, a)
