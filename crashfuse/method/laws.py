@@ -342,7 +342,7 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
         return (_param("strain_rate.d", 1e-2, 1e8, (1e2, 1e4), upper_is_limit=False),
                 _param("strain_rate.q", 1.0, 12.0, (3.0, 6.0)))
     if effect == "unloading":
-        return (_param("unloading.k", 1e5, 1e10, (1e7, 1e8)),
+        return (_param("unloading.k", 1e5, 1e10, (1e7, 1e8), upper_is_limit=False),  # 1e10: rigid, l0 alone
                 _param("unloading.l0", 1e-4, 0.1, (0.003, 0.01)),
                 _param("unloading.n", 0.3, 30.0, (1.5, 1.0), upper_is_limit=False))  # 30: an exponential
     if effect == "mass":
