@@ -411,7 +411,7 @@ def test_the_weak_end_of_the_search_box_is_not_a_physical_limit(case):
 def test_a_rigid_initial_unloading_is_not_a_physical_limit(case):
     """With k at its upper end the initial decay length is l0 alone: a law inside the family."""
     params = ef.parameters_to_fit(case, ("unloading",))
-    k, l0, n = params
+    k, l0, _ = params
     rigid = ef.FoldFits(("unloading",), params, np.array([[k.upper, 0.005, 2.0]] * 2), np.zeros(2))
     assert Candidate("unloading", 1, rigid, np.ones(2), np.ones(2), _tie(2), []).at_upper_bound == []
     long = ef.FoldFits(("unloading",), params, np.array([[1e8, l0.upper, 2.0]] * 2), np.zeros(2))

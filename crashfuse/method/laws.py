@@ -111,7 +111,8 @@ class Param:
     upper_is_limit : bool
         A fit at ``upper`` needs more of the effect than is physical (an extra mass above half
         the car), so the law cannot explain the gap. False where ``upper`` only closes the search
-        box on the weak side (the rate reference ``d``: a larger ``d`` hardens less).
+        box on the weak side (the rate reference ``d``: a larger ``d`` hardens less) or is a limit
+        inside the family (a rigid link or unloading start, a sharp mount step, an exponential).
     """
 
     name: str
