@@ -714,7 +714,7 @@ def _add_world_validate_method(wsub) -> None:
                         "20 samples); options given beside it still apply")
     s.add_argument("--worlds", nargs="+", default=None, help="first multibody (default both)")
     s.add_argument("--withheld", nargs="+", default=None, metavar="WITHHELD",
-                   help="single (every effect), pairs (every pair; multibody only), paper, none (the control), "
+                   help="single (every effect), pairs (every pair), paper, none (the control), "
                         "noise (the control with an exact CAE model: tests are their CAE runs plus noise), "
                         "an EFFECT or EFFECT+EFFECT (default: single pairs paper none noise)")
     s.add_argument("--strengths", nargs="+", default=None, help="realistic subtle (default both)")
