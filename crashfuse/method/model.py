@@ -96,7 +96,8 @@ class FittedModel:
         the CAE runs' conditions (the surrogate's range); ``state`` (``state`` inputs only): per
         branch, the joint (x, v) coverage of the bias data that flags a rollout leaving it;
         ``bias_rms`` per branch: the rms of the training tests' bias in m/s^2 (the learnt target
-        times its scale), which bounds the band (:meth:`bias_spread`).
+        times its scale), which bounds the band (:meth:`bias_spread`); ``bias_range`` per branch: the
+        learnt target's span over the training tests' points, 0 included (:meth:`bias_range`).
     companions : list of (Condition, Pulse)
         Every test's condition and its companion CAE run.
     categories : dict of str to list of str
@@ -201,6 +202,12 @@ class FittedModel:
         """Rms of the training tests' bias on ``branch`` (m/s^2), the bound on a relative target's band
         (:func:`crashfuse.method.rollout.predict`); ``inf`` for a file fitted before it was stored."""
         return float(self.ranges.get("bias_rms", {}).get(branch, np.inf))
+
+    def bias_range(self, branch: str) -> tuple[float, float]:
+        """(lo, hi): the learnt target's span over the training tests' bias points of ``branch``, 0 (no
+        correction) included; (-inf, inf) for a file fitted before it was stored."""
+        lo, hi = self.ranges.get("bias_range", {}).get(branch, (-np.inf, np.inf))
+        return float(lo), float(hi)
 
     def rebound_range(self) -> tuple[float, float]:
         """(lo, hi): the rebound speed over the CAE's that the training tests span, 1 included; (0, inf)
@@ -506,6 +513,7 @@ def _ranges(campaign: Campaign, train: list, data: BiasData, curves: dict) -> di
     x_max = {b: float(data.branch(b).X[:, 0].max()) if data.branch(b).y.size else 0.0 for b in BRANCHES}
     out = {"condition": (tr.min(axis=0), tr.max(axis=0)), "cae_condition": (cae.min(axis=0), cae.max(axis=0)),
            "x_max": x_max, "bias_rms": {b: _bias_rms(data.branch(b)) for b in BRANCHES},
+           "bias_range": {b: _bias_range(data.branch(b)) for b in BRANCHES},
            "rebound_ratio": _rebound_ratios(campaign, curves)}
     if data.inputs == "state":
         out["state"] = {b: _state_table(data.branch(b)) if data.branch(b).y.size else None for b in BRANCHES}
@@ -529,6 +537,11 @@ def _rebound_ratios(campaign: Campaign, curves: dict) -> list:
 def _bias_rms(d) -> float:
     """Rms of one branch's bias data in m/s^2 (0 without data)."""
     return float(np.sqrt(np.mean((d.y * d.scale) ** 2))) if d.y.size else 0.0
+
+
+def _bias_range(d) -> tuple[float, float]:
+    """Span of one branch's learnt bias target with 0 included ((0, 0) without data)."""
+    return float(min(0.0, d.y.min(initial=0.0))), float(max(0.0, d.y.max(initial=0.0)))
 
 
 def _state_table(d) -> tuple:
