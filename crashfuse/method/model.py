@@ -541,7 +541,7 @@ def _bias_rms(d) -> float:
 
 def _bias_range(d) -> tuple[float, float]:
     """Span of one branch's learnt bias target with 0 included ((0, 0) without data)."""
-    return float(min(0.0, d.y.min(initial=0.0))), float(max(0.0, d.y.max(initial=0.0)))
+    return float(d.y.min(initial=0.0)), float(d.y.max(initial=0.0))
 
 
 def _state_table(d) -> tuple:
