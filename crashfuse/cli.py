@@ -143,8 +143,7 @@ def _world_validate_method(args) -> int:
     base = QUICK if args.quick else DEFAULTS
     spread = {name: base[name] if value is None else value for name, value in given.items()}
     result = validate_method(args.out, work=args.work, random_state=args.seed, n_jobs=args.jobs,
-                             auto=_auto_arg(args.auto),
-                             **spread)
+                             auto=_auto_arg(args.auto), effects=_effects_arg(args.effects), **spread)
     print(result.summary.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
     return 0
 
@@ -153,8 +152,12 @@ def _method_settings(args) -> dict:
     """The MethodConfig settings of ``_add_method_options`` (None: the input mode's default)."""
     return dict(assignment=args.assignment, extra_inputs=args.extra_inputs, cae_decel=args.cae_decel,
                 n_grid=args.n_grid, use_companion=args.use_companion, trend=args.trend, pooled=args.pooled,
-                onset=args.onset, shrink=args.shrink,
-                effects=args.effects[0] if args.effects in (["auto"], ["none"]) else tuple(args.effects))
+                onset=args.onset, shrink=args.shrink, effects=_effects_arg(args.effects))
+
+
+def _effects_arg(effects: list) -> str | tuple:
+    """``--effects`` as ``MethodConfig.effects``: ``auto``, ``none`` or a tuple of effects."""
+    return effects[0] if effects in (["auto"], ["none"]) else tuple(effects)
 
 
 def _fit(args) -> int:
@@ -727,6 +730,9 @@ def _add_world_validate_method(wsub) -> None:
     s.add_argument("--samples", type=_positive, default=None, help="Monte Carlo samples per fold (default 200)")
     s.add_argument("--auto", nargs="*", choices=("paper", "state"), default=None, metavar="MODE",
                    help="also the auto model, chosen among K (and the input modes MODE; default state)")
+    s.add_argument("--effects", nargs="+", default=["none"], metavar="EFFECT",
+                   help="the physics-first hybrid of every fold, as evaluate's --effects: auto, none (default) "
+                        f"or effects among: {' '.join(EFFECTS)}")
     s.add_argument("--seed", type=_seed, default=0, help="seed of every evaluation (default 0)")
     s.add_argument("--jobs", type=_positive, default=2, help="worker processes for each campaign's folds (default 2)")
     s.set_defaults(func=_world_validate_method)
@@ -979,7 +985,7 @@ _FLAGS = {
     "world validate-method": {"worlds": "--worlds", "withheld": "--withheld", "strengths": "--strengths",
                               "seeds": "--seeds", "matrices": "--matrices", "n_cae": "--n-cae",
                               "inputs": "--inputs", "ks": "--k", "n_samples": "--samples", "out": "--out",
-                              "work": "--work"},
+                              "work": "--work", "effects": "--effects"},
 }
 
 

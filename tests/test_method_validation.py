@@ -94,11 +94,18 @@ def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
 
     def refuse(*args, **kwargs):
         raise AssertionError("resume must reuse the work folder")
+    one_fold_evaluate = mv.evaluate
     monkeypatch.setattr(mv, "evaluate", refuse)
     monkeypatch.setattr(mv.CampaignSpec, "generate", refuse)
     again = mv.validate_method(tmp_path / "again", work=tmp_path / "out" / "work", **spread)
     pd.testing.assert_frame_equal(again.table, first.table)
     assert (tmp_path / "again" / "method_matrix.csv").read_bytes() == (tmp_path / "out" / "method_matrix.csv").read_bytes()
+
+    # The hybrid is an evaluation of its own on the same campaign, its rows labelled with its effects.
+    monkeypatch.setattr(mv, "evaluate", one_fold_evaluate)
+    hybrid = mv.validate_method(tmp_path / "hybrid", work=tmp_path / "out" / "work", effects=("damping",), **spread)
+    assert hybrid.table.loc[0, "model"] == "K1+damping"
+    assert "effects-damping" in (tmp_path / "hybrid" / "method_matrix.md").read_text()
 
 
 @pytest.mark.parametrize("args, flag", [
@@ -110,6 +117,7 @@ def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
     (["--matrices", "wide", "--worlds", "first"], "--matrices"),
     (["--inputs", "speed"], "--inputs"),
     (["--k", "0"], "--k"),
+    (["--effects", "dampin"], "--effects"),
 ])
 def test_bad_options_exit_2_naming_the_option(tmp_path, capsys, args, flag):
     assert main(["world", "validate-method", "--out", str(tmp_path / "out"), *args]) == 2

@@ -267,6 +267,7 @@ def test_method_matrix_is_its_own_target_with_the_config_spread(tmp_path):
     assert job_counts(done.stdout) == {"validate_method": 1}
     assert "world validate-method --worlds multibody --withheld single pairs paper none noise" in done.stdout
     assert "--seeds 4 " in done.stdout and "--n-cae 150 1000" in done.stdout
+    assert "--k 1 2 3 --auto --effects none " in done.stdout
 
 
 def test_diagnosis_validation_is_its_own_target_with_the_config_spread(tmp_path):

@@ -28,6 +28,7 @@ from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, window_key
 from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import read_campaign
+from crashfuse.method.hybrid import AUTO, check_effects
 from crashfuse.method.projection import INPUTS
 from crashfuse.world import WORLD_VERSION as FIRST_VERSION
 from crashfuse.world import generate as first_generate
@@ -203,13 +204,13 @@ def _expand(token: str) -> list[str]:
     return [PAIR_SEP.join(sorted(names, key=EFFECTS.index))]
 
 
-def check_method(inputs, ks, n_samples) -> tuple:
-    """The evaluation grid, checked: input modes, K values, Monte Carlo samples."""
+def check_method(inputs, ks, n_samples, effects=()) -> tuple:
+    """The evaluation grid, checked: input modes, K values, Monte Carlo samples, the hybrid's effects."""
     inputs = _choices(inputs, INPUTS, "inputs")
     ks = _counts(ks, "ks", minimum=1)
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
         raise InputError(f"expected an integer >= 1, got {n_samples!r}", field="n_samples")
-    return inputs, ks, int(n_samples)
+    return inputs, ks, int(n_samples), check_effects(effects)
 
 
 # --- one campaign ---------------------------------------------------------------------------------
@@ -226,15 +227,21 @@ def campaign_folder(spec: CampaignSpec, work: Path, say) -> Path:
     return folder
 
 
-def evaluation_key(inputs, ks, n_samples, random_state, auto=False) -> str:
+def evaluation_key(inputs, ks, n_samples, random_state, auto=False, effects=()) -> str:
     auto = "" if not auto else "-auto" if auto is True else "-auto-" + "-".join(auto)
-    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{auto}-n{n_samples}-seed{random_state}"
+    effects = f"-effects-{effects_label(effects)}" if effects else ""
+    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{auto}{effects}-n{n_samples}-seed{random_state}"
+
+
+def effects_label(effects) -> str:
+    """``auto``, the effects joined by ``-``, or ``none``: the hybrid's setting in a key or a line."""
+    return effects if effects == AUTO else "-".join(effects) or "none"
 
 
 def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int, n_jobs: int,
-                      progress=None, auto=False) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
+                      progress=None, auto=False, effects=()) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
     """The campaign's ISO table and coverage, from ``out`` if there, else evaluated and written there
-    (``progress`` receives evaluate's line per fold).
+    (``progress`` receives evaluate's line per fold; ``effects``: the hybrid's, ``MethodConfig.effects``).
 
     ``coverage.csv`` is written before ``iso_table.csv``: an ISO table means a complete evaluation.
 
@@ -247,7 +254,7 @@ def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, rando
     if iso_path.is_file() and cov_path.is_file():
         return pd.read_csv(iso_path), pd.read_csv(cov_path), True
     result = evaluate(read_campaign(folder), ks=ks, inputs=inputs, n_samples=n_samples, random_state=random_state,
-                      n_jobs=n_jobs, progress=progress, auto=auto)
+                      n_jobs=n_jobs, progress=progress, auto=auto, effects=effects)
     out.mkdir(parents=True, exist_ok=True)
     for frame, path in ((result.coverage, cov_path), (result.iso_table, iso_path)):
         with atomic_path(path) as tmp:
@@ -319,7 +326,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
                     strengths=DEFAULTS["strengths"], seeds=DEFAULTS["seeds"], matrices=DEFAULTS["matrices"],
                     n_cae=DEFAULTS["n_cae"], inputs=DEFAULTS["inputs"], ks=DEFAULTS["ks"],
                     n_samples: int = DEFAULTS["n_samples"], random_state: int = 0, n_jobs: int = 2,
-                    progress: Callable[[str], None] | None = print, auto=False) -> MatrixResult:
+                    progress: Callable[[str], None] | None = print, auto=False, effects=()) -> MatrixResult:
     """Generate the spread (:func:`plan`), evaluate each campaign, write the matrix table.
 
     Parameters
@@ -344,6 +351,9 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
     auto : bool or sequence of str
         Also rate the ``auto`` model (:func:`crashfuse.evaluation.loto.evaluate`'s ``auto``: among ``ks`` and,
         True, the state mode's folds, or those of the given input modes).
+    effects : "auto", "none" or sequence of str
+        The physics-first hybrid of every fold (:class:`crashfuse.method.config.MethodConfig`'s ``effects``;
+        default none: the GMM-GPR model alone).
 
     Returns
     -------
@@ -357,21 +367,22 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
     t0 = time.perf_counter()
     say = progress or (lambda line: None)
     specs, notes = plan(worlds, withheld, strengths, seeds, matrices, n_cae)
-    inputs, ks, n_samples = check_method(inputs, ks, n_samples)
+    inputs, ks, n_samples, effects = check_method(inputs, ks, n_samples, effects)
     out = Path(out)
     work = out / "work" if work is None else Path(work)
     for path, field in ((out, "out"), (work, "work")):
         if path.exists() and not path.is_dir():
             raise InputError("expected a folder, found a file", path, field)
-    eval_key = evaluation_key(inputs, ks, n_samples, random_state, auto)
+    eval_key = evaluation_key(inputs, ks, n_samples, random_state, auto, effects)
     say(f"validate-method: {len(specs)} campaigns x {' '.join(inputs)} K {' '.join(map(str, ks))}, "
-        f"{n_samples} samples, work {work}")
+        f"effects {effects_label(effects)}, {n_samples} samples, work {work}")
     rows = []
     for i, spec in enumerate(specs, 1):
         t1 = time.perf_counter()
         folder = campaign_folder(spec, work, say)
         iso, cov, reused = evaluate_campaign(folder, work / "evaluations" / spec.key / eval_key, inputs, ks,
-                                             n_samples, random_state, n_jobs, lambda line: say(f"  {line}"), auto)
+                                             n_samples, random_state, n_jobs, lambda line: say(f"  {line}"), auto,
+                                             effects)
         scored = score_rows(iso, cov)
         rows += [{**dataclasses.asdict(spec), **row} for row in scored]
         say(f"[{i}/{len(specs)}] {spec.key}: " + ", ".join(
