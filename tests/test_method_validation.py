@@ -59,6 +59,13 @@ def test_losses_worst_margin_and_coverage_by_hand():
     assert (r["coverage"], r["coverage_latent"]) == (pytest.approx(0.8), pytest.approx(0.4))
     assert (got["auto"]["lost_0_01"], got["auto"]["worst_margin"]) == (0, pytest.approx(0.05))
 
+    lost = mv.lost_windows(_iso_table(rows).assign(phase=lambda f: f["overall"] / 2))
+    assert lost[["model", "test_id", "window_ms"]].values.tolist() == [["K1", "T02", "0-20"]]
+    row = lost.iloc[0]
+    assert (row["margin"], row["overall"], row["cae_overall"]) == pytest.approx((-0.06, 0.54, 0.60))
+    assert (row["phase"], row["cae_phase"]) == pytest.approx((0.27, 0.30))
+    assert mv.lost_windows(_iso_table(rows), margin=0.01)["margin"].tolist() == pytest.approx([-0.06, -0.02, -0.011])
+
 
 def test_summary_share_and_worst_over_campaigns():
     rows = [dict(world="first", withheld=w, strength="realistic", seed=0, matrix="table1", n_cae=20, inputs="state",
@@ -90,6 +97,8 @@ def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
             "worst_window", "coverage", "coverage_latent"} <= set(table.columns)
     assert len(table) == 1 and table.loc[0, "model"] == "K1" and table.loc[0, "n_test_windows"] == 3
     assert (tmp_path / "out" / "method_summary.csv").is_file()
+    losses = pd.read_csv(tmp_path / "out" / "method_losses.csv")
+    assert list(losses.columns[:11]) == [*mv.KEY_COLUMNS[:6], "inputs", "model", "test_id", "window_ms", "margin"]
     assert "| state | K1 |" in (tmp_path / "out" / "method_matrix.md").read_text()
 
     def refuse(*args, **kwargs):

@@ -24,7 +24,7 @@ import pandas as pd
 
 from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, window_key
+from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, window_key
 from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import read_campaign
@@ -304,6 +304,29 @@ def score_rows(iso: pd.DataFrame, coverage: pd.DataFrame) -> list[dict]:
     return rows
 
 
+def lost_windows(iso: pd.DataFrame, margin: float = LOSS_MARGINS[-1]) -> pd.DataFrame:
+    """Every test-window of one campaign's ``iso_table.csv`` that a model loses to CAE by more than
+    ``margin``, with the ISO/TS 18571 sub-scores of both: which rating lost it (a corridor missed, or a
+    phase shift the standard's search found on a window that holds only a ramp).
+
+    Returns
+    -------
+    DataFrame
+        ``inputs, model, test_id, window_ms, margin`` (model - CAE overall), then each score of
+        :data:`crashfuse.evaluation.iso_table.SCORES` and its ``cae_`` counterpart; most negative
+        margin first.
+    """
+    keys = ["inputs", "test_id", "window_ms"]
+    base = iso[iso["model"] == BASELINE].drop_duplicates(keys).drop(columns="model")
+    rated = iso[iso["model"] != BASELINE].merge(base, on=keys, suffixes=("", "_cae"))
+    rated = rated.rename(columns={f"{c}_cae": f"cae_{c}" for c in SCORES})
+    rated.insert(0, "margin", rated["overall"] - rated["cae_overall"])
+    scores = [c for pair in zip(SCORES, (f"cae_{c}" for c in SCORES)) for c in pair]
+    lost = rated[rated["margin"] < -margin]
+    return lost[["inputs", "model", "test_id", "window_ms", "margin", *scores]].sort_values("margin",
+                                                                                              kind="stable")
+
+
 def loss_column(margin: float) -> str:
     """``lost_0_01`` for a margin of 0.01."""
     return "lost_" + f"{margin:g}".replace(".", "_")
@@ -318,6 +341,7 @@ class MatrixResult:
 
     table: pd.DataFrame
     summary: pd.DataFrame
+    losses: pd.DataFrame  # every test-window lost by more than the last margin (:func:`lost_windows`)
     notes: list
     wall_time: float
 
@@ -376,7 +400,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
     eval_key = evaluation_key(inputs, ks, n_samples, random_state, auto, effects)
     say(f"validate-method: {len(specs)} campaigns x {' '.join(inputs)} K {' '.join(map(str, ks))}, "
         f"effects {effects_label(effects)}, {n_samples} samples, work {work}")
-    rows = []
+    rows, losses = [], []
     for i, spec in enumerate(specs, 1):
         t1 = time.perf_counter()
         folder = campaign_folder(spec, work, say)
@@ -385,13 +409,16 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
                                              effects)
         scored = score_rows(iso, cov)
         rows += [{**dataclasses.asdict(spec), **row} for row in scored]
+        losses.append(lost_windows(iso).assign(**dataclasses.asdict(spec)))
         say(f"[{i}/{len(specs)}] {spec.key}: " + ", ".join(
             f"{r['inputs']} {r['model']} ISO(0-60) {r.get('iso_0_60', np.nan):.3f} lost {r[loss_column(0.01)]}"
             for r in scored) + (" (reused)" if reused else f" ({time.perf_counter() - t1:.0f} s)"))
     table = pd.DataFrame(rows)
     table = table[list(KEY_COLUMNS) + [c for c in table.columns if c not in KEY_COLUMNS]]
     summary = summarise(table)
-    result = MatrixResult(table, summary, notes, time.perf_counter() - t0)
+    losses = pd.concat(losses, ignore_index=True)
+    losses = losses[list(KEY_COLUMNS[:-2]) + [c for c in losses.columns if c not in KEY_COLUMNS[:-2]]]
+    result = MatrixResult(table, summary, losses, notes, time.perf_counter() - t0)
     write_matrix(result, out, header=f"{len(specs)} campaigns; evaluation {eval_key}")
     say(f"validate-method: done in {result.wall_time:.0f} s -> {out}")
     return result
@@ -420,9 +447,11 @@ def summarise(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def write_matrix(result: MatrixResult, out: Path, header: str = "") -> None:
-    """``method_matrix.csv``, ``method_summary.csv`` and ``method_matrix.md`` into ``out``, atomically."""
+    """``method_matrix.csv``, ``method_summary.csv``, ``method_losses.csv`` and ``method_matrix.md`` into
+    ``out``, atomically."""
     out.mkdir(parents=True, exist_ok=True)
-    for frame, name in ((result.summary, "method_summary.csv"), (result.table, "method_matrix.csv")):
+    for frame, name in ((result.summary, "method_summary.csv"), (result.losses, "method_losses.csv"),
+                        (result.table, "method_matrix.csv")):
         with atomic_path(out / name) as tmp:
             frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n")
     write_text(out / "method_matrix.md", matrix_markdown(result, header))
@@ -436,7 +465,9 @@ def matrix_markdown(result: MatrixResult, header: str = "") -> str:
              f"{' / '.join(f'{m:g}' for m in LOSS_MARGINS)}; worst: the most negative model - CAE.", ""]
     lines += [f"- {note}" for note in result.notes] + ([""] if result.notes else [])
     lines += ["## Per model", "", _markdown(summary), "", "## Per campaign", "",
-              _markdown(table.drop(columns=["n_tests"]))]
+              _markdown(table.drop(columns=["n_tests"])), "",
+              f"## Test-windows lost by more than {LOSS_MARGINS[-1]:g}", "",
+              _markdown(result.losses) if len(result.losses) else "None."]
     return "\n".join(lines) + "\n"
 
 
