@@ -10,6 +10,7 @@ from __future__ import annotations
 import codecs
 import io
 import os
+import warnings
 from pathlib import Path
 from typing import Iterable
 
@@ -72,7 +73,9 @@ def plain_pulse_csv(path: Path):
             header = [h.strip() for h in fh.readline().split(",")]
             if _pulse_columns(header) is None:
                 return None
-            data = np.loadtxt(fh, delimiter=",", ndmin=2, comments=None)  # ragged rows raise
+            with warnings.catch_warnings():  # a header without rows: numpy warns, the pandas reader names it
+                warnings.simplefilter("ignore", UserWarning)
+                data = np.loadtxt(fh, delimiter=",", ndmin=2, comments=None)  # ragged rows raise
     except (OSError, UnicodeDecodeError, ValueError):
         return None
     if data.shape[0] == 0 or data.shape[1] != len(header) or not np.isfinite(data).all():
