@@ -459,7 +459,7 @@ BAD_PULSES = {
 
 
 @pytest.mark.parametrize("case", BAD_PULSES, ids=list(BAD_PULSES))
-@pytest.mark.filterwarnings("error")  # the error names the file; nothing else reaches the user
+@pytest.mark.filterwarnings("error::UserWarning")  # the error names the file; no warning beside it
 def test_bad_pulse_files_name_file_and_field(tmp_path, case):
     text, field, words = BAD_PULSES[case]
     write_folder(tmp_path, ["C1,cae,35,2000,1500,ICE,FWD,"], pulses={"C1": text})
