@@ -24,11 +24,11 @@ import pandas as pd
 
 from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, window_key
+from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, effects_label, window_key
 from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import read_campaign
-from crashfuse.method.hybrid import AUTO, check_effects
+from crashfuse.method.hybrid import check_effects
 from crashfuse.method.projection import INPUTS
 from crashfuse.world import WORLD_VERSION as FIRST_VERSION
 from crashfuse.world import generate as first_generate
@@ -231,11 +231,6 @@ def evaluation_key(inputs, ks, n_samples, random_state, auto=False, effects=()) 
     auto = "" if not auto else "-auto" if auto is True else "-auto-" + "-".join(auto)
     effects = f"-effects-{effects_label(effects)}" if effects else ""
     return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{auto}{effects}-n{n_samples}-seed{random_state}"
-
-
-def effects_label(effects) -> str:
-    """``auto``, the effects joined by ``-``, or ``none``: the hybrid's setting in a key or a line."""
-    return effects if effects == AUTO else "-".join(effects) or "none"
 
 
 def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int, n_jobs: int,
