@@ -220,7 +220,8 @@ def _levenberg_marquardt(case, effects, params, sets, z):
     lo, hi = _bounds(params)
     z = np.clip(z, lo, hi)
     lam = np.full(len(sets), 1e-2)
-    res, jac = _residuals_and_jacobian(case, effects, params, sets, z)
+    res = _residuals(case, effects, params, sets, z, np.arange(len(sets)))
+    jac = _jacobian(case, effects, params, sets, z, np.arange(len(sets)), res)
     cost = np.array([r @ r for r in res])
     free = np.array([_free(j.T @ j, zi, lo, hi) for j, zi in zip(jac, z)])
     active = np.ones(len(sets), bool)
@@ -244,9 +245,10 @@ def _levenberg_marquardt(case, effects, params, sets, z):
         active &= ~converged & (lam < 1e8)
         if not active.any():
             break
-        res_new, jac_new = _residuals_and_jacobian(case, effects, params, sets, z, np.flatnonzero(better & active))
-        for i in np.flatnonzero(better & active):
-            res[i], jac[i] = res_new[i], jac_new[i]
+        moved = np.flatnonzero(better & active)
+        jac_new = _jacobian(case, effects, params, sets, z, moved, trial_res)  # the residuals at z: the trial's
+        for i in moved:
+            res[i], jac[i] = trial_res[i], jac_new[i]
     n_res = np.array([case.mask[s].sum() for s in sets])
     return z, cost / n_res
 
@@ -288,22 +290,16 @@ def _residuals(case, effects, params, sets, z, which):
     return out
 
 
-def _residuals_and_jacobian(case, effects, params, sets, z, which=None):
-    """Residuals and forward-difference Jacobians (in log-parameters) of the sets in ``which``."""
-    which = np.arange(len(sets)) if which is None else np.asarray(which)
-    d = z.shape[1]
-    shifted = [z] + [z + FD_STEP * np.eye(d)[j] for j in range(d)]
-    stacked = np.concatenate(shifted)  # (d+1) blocks of len(sets)
-    n = len(sets)
-    big_sets = sets * (d + 1)
-    big_which = np.concatenate([which + k * n for k in range(d + 1)])
-    res = _residuals(case, effects, params, big_sets, stacked, big_which)
-    out_res, out_jac = [None] * n, [None] * n
+def _jacobian(case, effects, params, sets, z, which, res):
+    """Forward-difference Jacobians (in log-parameters) of the sets in ``which`` (None elsewhere), whose
+    residuals at ``z`` are ``res``."""
+    d, n = z.shape[1], len(sets)
+    shifted = np.concatenate([z + FD_STEP * np.eye(d)[j] for j in range(d)])  # d blocks of len(sets)
+    moved = _residuals(case, effects, params, sets * d, shifted, np.concatenate([which + k * n for k in range(d)]))
+    jac = [None] * n
     for i in which:
-        base = res[i]
-        out_res[i] = base
-        out_jac[i] = np.stack([(res[i + (j + 1) * n] - base) / FD_STEP for j in range(d)], axis=1)
-    return out_res, out_jac
+        jac[i] = np.stack([(moved[i + j * n] - res[i]) / FD_STEP for j in range(d)], axis=1)
+    return jac
 
 
 def _costs(case, train_sets):

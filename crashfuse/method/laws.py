@@ -64,7 +64,6 @@ Every effect lists its parameters with physical bounds and starting points (:cla
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 
@@ -131,16 +130,19 @@ class Plant:
     ----------
     s_step, u_step : float
         Uniform grid steps in m of the loading (from s = 0) and unloading (from u = 0) tables.
-    load_table : ndarray, shape (3, n, n_s)
+    load_table : ndarray, shape (3, n_c, n_s)
         The loading tables ``a_rest``, ``dadv``, ``dadv2`` (properties; stacked, so that a
         rollout step looks all three up at once):
-        ``a_rest``: CAE loading deceleration (m/s^2) of each of ``n`` conditions on the s grid at
+        ``a_rest``: CAE loading deceleration (m/s^2) of each of ``n_c`` conditions on the s grid at
         zero crush speed, ``a_CAE(s) - dadv v_CAE(s) - dadv2 v_CAE(s)^2`` (the CAE curve itself
         without a speed dependence; continued beyond the run's data as :func:`_reference` says);
         ``dadv``, ``dadv2``: its dependence on crush speed at fixed crush,
         ``a_CAE(s, v) = a_rest + dadv v + dadv2 v^2`` (1/s and 1/m).
-    a_unload : ndarray, shape (n, n_u)
+    a_unload : ndarray, shape (n_c, n_u)
         CAE unloading deceleration (m/s^2) on the u grid (0 beyond the spring-back).
+    row : ndarray of int, shape (n,)
+        The condition (table row) of each of the ``n`` samples. Samples share their condition's
+        tables: a batch of many samples of a few conditions looks up tables that stay in cache.
     mass : ndarray, shape (n,)
         Nominal vehicle mass in kg.
     v0 : ndarray, shape (n,)
@@ -154,6 +156,7 @@ class Plant:
     u_step: float
     load_table: np.ndarray
     a_unload: np.ndarray
+    row: np.ndarray
     mass: np.ndarray
     v0: np.ndarray
     group: np.ndarray
@@ -180,47 +183,50 @@ class Plant:
         b1, b2 = (0.0, 0.0) if force_rate is None else force_rate(s)
         dadv, dadv2 = (b / mass[:, None] + np.zeros_like(a) for b in (b1, b2))
         return cls(s[1], u[1], np.stack([a - dadv * v - dadv2 * v ** 2, dadv, dadv2]),
-                   np.array([c.unloading(u) for c in curves]), mass, np.array([c.v0 for c in curves]),
+                   np.array([c.unloading(u) for c in curves]), np.arange(len(curves)), mass,
+                   np.array([c.v0 for c in curves]),
                    np.asarray(group, int), tuple(labels))
 
     @property
     def a_rest(self) -> np.ndarray:
-        return self.load_table[0]
+        """Per sample, shape (n, n_s)."""
+        return self.load_table[0, self.row]
 
     @property
     def dadv(self) -> np.ndarray:
-        return self.load_table[1]
+        """Per sample, shape (n, n_s)."""
+        return self.load_table[1, self.row]
 
     @property
     def dadv2(self) -> np.ndarray:
-        return self.load_table[2]
+        """Per sample, shape (n, n_s)."""
+        return self.load_table[2, self.row]
 
     @property
     def s_hi(self) -> float:
         """Crush (m) the loading tables reach."""
-        return self.s_step * (self.a_rest.shape[1] - 1)
+        return self.s_step * (self.load_table.shape[2] - 1)
 
     def subset(self, rows) -> "Plant":
-        """The plant of the conditions ``rows`` (in that order, repeats allowed)."""
+        """The plant of the samples ``rows`` (in that order, repeats allowed), sharing this one's tables."""
         rows = np.asarray(rows, int)
-        # take, not [:, rows]: fancy indexing on the middle axis leaves a layout a flat view cannot use
-        return dataclasses.replace(self, load_table=self.load_table.take(rows, axis=1), a_unload=self.a_unload[rows],
-                                   mass=self.mass[rows], v0=self.v0[rows], group=self.group[rows])
+        return dataclasses.replace(self, row=self.row[rows], mass=self.mass[rows], v0=self.v0[rows],
+                                   group=self.group[rows])
 
     def loading(self, s: np.ndarray, v) -> tuple[np.ndarray, np.ndarray]:
         """CAE loading deceleration (m/s^2) of every sample at its own crush ``s`` (m) and crush speed
         ``v`` (m/s), and the same at rest: two arrays of shape (n,), both >= 0."""
-        rest, dadv, dadv2 = _take(self.load_table, *_cell(s / self.s_step, self.load_table.shape[2]))
+        rest, dadv, dadv2 = _take(self.load_table, self.row, *_cell(s / self.s_step, self.load_table.shape[2]))
         speed = dadv * v + dadv2 * v ** 2
         return np.maximum(rest + speed, 0.0), np.maximum(rest, 0.0)
 
     def at_rest(self, s: np.ndarray) -> np.ndarray:
         """CAE loading deceleration (m/s^2) at crush ``s`` (m) and zero crush speed, shape (n,), >= 0."""
-        return np.maximum(_take(self.a_rest, *_cell(s / self.s_step, self.a_rest.shape[1])), 0.0)
+        return np.maximum(_take(self.load_table[0], self.row, *_cell(s / self.s_step, self.load_table.shape[2])), 0.0)
 
     def unloading(self, u: np.ndarray) -> np.ndarray:
         """CAE unloading deceleration (m/s^2) of every sample at its own ``u`` (m), shape (n,)."""
-        return _take(self.a_unload, *_cell(u / self.u_step, self.a_unload.shape[1]))
+        return _take(self.a_unload, self.row, *_cell(u / self.u_step, self.a_unload.shape[1]))
 
 
 def _reference(curve, faster, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -306,20 +312,12 @@ def _cell(pos: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return i, pos - i
 
 
-@functools.lru_cache(maxsize=64)
-def _row_starts(n: int, n_cols: int) -> np.ndarray:
-    """Flat index of each row's first column in an (n, n_cols) table (read only: shared between calls)."""
-    starts = np.arange(n) * n_cols
-    starts.flags.writeable = False
-    return starts
-
-
-def _take(table: np.ndarray, i: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Row-wise linear interpolation of ``table`` (n, n_cols), or of each of a stack of them
-    (k, n, n_cols), at cells ``i`` with weights ``w`` (n,): shape (n,) or (k, n)."""
-    n, n_cols = table.shape[-2:]
+def _take(table: np.ndarray, row: np.ndarray, i: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Linear interpolation of rows ``row`` (n,) of ``table`` (n_c, n_cols), or of each of a stack of
+    them (k, n_c, n_cols), at cells ``i`` with weights ``w`` (n,): shape (n,) or (k, n)."""
+    n_cols = table.shape[-1]
     flat = table.reshape(*table.shape[:-2], -1)  # a flat take: half the cost of 2-D fancy indexing
-    at = _row_starts(n, n_cols) + i
+    at = row * n_cols + i
     return flat.take(at, axis=-1) * (1.0 - w) + flat.take(at + 1, axis=-1) * w
 
 
@@ -384,7 +382,7 @@ def decel_fn(plant: Plant, effects, theta: dict, dt: float):
     effects = set(effects)
     pt = _powertrain_arrays(plant, theta) if "powertrain" in effects else None
     link = _Link(theta["mass.extra"], theta["mass.k_link"], dt) if "mass" in effects else None
-    unl0 = np.maximum(plant.a_unload[:, 0], 1e-9)
+    unl0 = np.maximum(plant.a_unload[plant.row, 0], 1e-9)
 
     def unloading_force(st: State) -> np.ndarray:
         f_max = plant.mass * plant.at_rest(st.s_max)  # static crush force at maximum crush (N)
