@@ -96,6 +96,7 @@ def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
     assert {"iso_0_20", "cae_0_40", "iso_0_60", "lost_0_01", "lost_0_05", "worst_margin", "worst_test",
             "worst_window", "coverage", "coverage_latent"} <= set(table.columns)
     assert len(table) == 1 and table.loc[0, "model"] == "K1" and table.loc[0, "n_test_windows"] == 3
+    assert first.table.loc[0, "effects"] == ""  # no hybrid, no effects fitted
     assert (tmp_path / "out" / "method_summary.csv").is_file()
     losses = pd.read_csv(tmp_path / "out" / "method_losses.csv")
     assert list(losses.columns[:11]) == [*mv.KEY_COLUMNS[:6], "inputs", "model", "test_id", "window_ms", "margin"]
@@ -113,7 +114,7 @@ def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
     # The hybrid is an evaluation of its own on the same campaign, its rows labelled with its effects.
     monkeypatch.setattr(mv, "evaluate", one_fold_evaluate)
     hybrid = mv.validate_method(tmp_path / "hybrid", work=tmp_path / "out" / "work", effects=("damping",), **spread)
-    assert hybrid.table.loc[0, "model"] == "K1+damping"
+    assert hybrid.table.loc[0, "model"] == "K1+damping" and hybrid.table.loc[0, "effects"] == "damping (1)"
     assert "effects-damping" in (tmp_path / "hybrid" / "method_matrix.md").read_text()
 
 

@@ -35,7 +35,8 @@ COVERAGE_WINDOW_MS = (0, 60)
 # where its held-out test then lost (docs/decisions.md, section 23).
 AUTO_INPUTS = ("state",)
 COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "coverage_latent", "n_points", "extrapolation",
-                    "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s", "inner_error"]
+                    "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s", "inner_error",
+                    "effects_fitted"]
 _FACT_KEYS = ("test_id", "inputs", "k", "model", "seed", "campaign", "settings", "metrics")
 
 
@@ -246,7 +247,8 @@ def score_fold(campaign, test_id: str, frame, facts: dict, windows=WINDOWS, cae=
                     extrapolation=bool(metrics["extrapolation"]), n_gps_loading=int(metrics["n_gps_loading"]),
                     n_gps_unloading=int(metrics["n_gps_unloading"]),
                     cluster_switches=int(metrics["cluster_switches"]), fit_s=metrics["fit_seconds"],
-                    predict_s=metrics["predict_seconds"], inner_error=metrics.get("inner_error"))
+                    predict_s=metrics["predict_seconds"], inner_error=metrics.get("inner_error"),
+                    effects_fitted=facts["settings"].get("effects_fitted"))
     record = FoldRecord(
         test_id=test_id, inputs=mode, k=facts["k"], seed=facts["seed"], campaign=facts["campaign"],
         conditions={"v0_mps": test.v0, "front_weight_kg": test.front_weight, "rear_weight_kg": test.rear_weight,

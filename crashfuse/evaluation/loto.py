@@ -56,7 +56,8 @@ class Evaluation:
         Columns ``COVERAGE_COLUMNS``: per fold, the fraction of held-out test points in 0-60 ms inside
         the reported 95 % band (``coverage``) and inside the latent band (``coverage_latent``), the
         extrapolation flag, the GPs per branch, how often the selected GP changes
-        along the mean-function rollout, and the fold's fit and predict times (s).
+        along the mean-function rollout, the fold's fit and predict times (s), ``auto``'s inner error and
+        the hybrid's effects fitted (``+``-joined, ``none``; empty without the hybrid).
     predictions : dict of (str, str, str) to DataFrame
         Per fold ``(inputs, model, test_id)``: the prediction table (:meth:`Prediction.frame`) with
         the held-out test's deceleration (``test_decel_g``) beside it.
