@@ -192,3 +192,29 @@ def test_fit_reports_the_laws_and_their_fallbacks():
     assert "powertrain (powertrain.gap[A]=0.5, powertrain.f_mount=5e+04)" in line and "law off for B" in line
     empty = dataclasses.replace(physics, effects=(), theta={}, notes=[])
     assert _physics_line(empty) == "effect laws: none (nothing fitted)"
+
+
+def test_an_earlier_pick_the_later_ones_make_unneeded_leaves(monkeypatch):
+    """Scripted inner errors: A joins first (50 of 100), B next (30); refitted from A + B's values B
+    alone does as well (31), so A leaves and C, which would not gain 10 %, is not added."""
+    from types import SimpleNamespace
+
+    from crashfuse.method import hybrid
+
+    def fit(case, effects, sets, start=None):
+        return SimpleNamespace(effects=tuple(effects), params=[SimpleNamespace(name=e) for e in effects],
+                               theta=np.zeros((len(sets), len(effects))), refit=start is not None and len(effects) == 1)
+
+    table = {(): 100.0, ("A",): 50.0, ("B",): 60.0, ("C",): 95.0, ("A", "B"): 30.0, ("A", "C"): 45.0,
+             ("B", "C"): 29.0, ("A", "B", "C"): 24.0}
+    monkeypatch.setattr(hybrid, "fit_folds", fit)
+    monkeypatch.setattr(hybrid, "warm_start", lambda case, current, effects: None)
+    monkeypatch.setattr(hybrid, "parameters_to_fit", lambda case, effects: [SimpleNamespace(name=e) for e in effects],
+                        raising=False)
+    monkeypatch.setattr(hybrid, "_inner_error",
+                        lambda case, f, rows: 31.0 if f.refit else table[tuple(sorted(f.effects))])
+    effects, tried, fits = hybrid.choose_effects(None, [0, 1, 2], ("A", "B", "C"))
+    assert effects == ("B",) and fits.effects == ("B",)
+    assert tried["B (refitted without A)"] == 31.0 and tried["B+C"] == 29.0 and "A+B+C" not in tried
+    table[("A", "B")] = 25.0  # now A still removes more than 10 % beyond B refitted: it stays
+    assert hybrid.choose_effects(None, [0, 1, 2], ("A", "B", "C"))[0] == ("A", "B")

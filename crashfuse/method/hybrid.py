@@ -9,7 +9,8 @@ the same curve plus the predicted bias. Without effects the fit is the GMM-GPR m
 
 ``effects="auto"`` chooses the effects by forward selection on the training tests alone: an effect
 joins when it cuts their inner leave-one-test-out squared error (each training test predicted by
-the laws fitted on the others) by at least :data:`MIN_GAIN`. Rate laws (``strain_rate``,
+the laws fitted on the others) by at least :data:`MIN_GAIN`, and an earlier pick leaves when the
+later ones make it unneeded (without it the error rises by less than that). Rate laws (``strain_rate``,
 ``damping``) need CAE runs at :data:`~crashfuse.method.effect_fit.MIN_CAE_SPEEDS` impact speeds,
 which separate the CAE model's own rate sensitivity from the missing one: naming one without them
 is an error, and ``auto`` leaves them out and says so (:attr:`PhysicsFirst.notes`).
@@ -28,8 +29,8 @@ import numpy as np
 from crashfuse.catalogue import EFFECTS
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
-from crashfuse.method.effect_fit import (DT, MIN_CAE_SPEEDS, FoldFits, fit_folds, powertrain_label, predict, test_case,
-                                         warm_start)
+from crashfuse.method.effect_fit import (DT, MIN_CAE_SPEEDS, FoldFits, fit_folds, parameters_to_fit, powertrain_label,
+                                         predict, test_case, warm_start)
 from crashfuse.method.laws import N_S, curve_plant, simulate
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
 from crashfuse.signals.domain import displacement_branches
@@ -68,7 +69,7 @@ class PhysicsFirst:
         Mean squared residual of CAE + effects over the training tests, (m/s^2)^2.
     inner_mse : dict of str to float
         ``auto`` only: the inner leave-one-test-out squared error of every effect set tried
-        (``+``-joined names, ``none`` for the CAE alone), (m/s^2)^2.
+        (keys as :func:`choose_effects` returns them), (m/s^2)^2.
     notes : list of str
         Fallbacks taken (rate laws left out of ``auto``, powertrain laws switched off).
     """
@@ -214,7 +215,8 @@ def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -
     """Forward selection of effects by inner leave-one-test-out squared error over ``rows``.
 
     Each round fits every remaining candidate with the chosen ones (warm-started from their fits)
-    on every inner training set and on all of ``rows`` at once.
+    on every inner training set and on all of ``rows`` at once; the best joins if it removes
+    ``min_gain`` of the error, and an earlier pick it makes unneeded leaves (:func:`_drop_unneeded`).
 
     Returns
     -------
@@ -222,23 +224,44 @@ def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -
         The chosen effects, in the order they joined (empty: the CAE alone predicts best).
     tried : dict of str to float
         Inner held-out mean squared error, (m/s^2)^2, of every effect set tried (``+``-joined,
-        ``none`` for the CAE alone).
+        ``none`` for the CAE alone; ``... (refitted without e)`` for a set checked without an
+        earlier pick ``e``).
     fits : FoldFits
         The chosen set's fits: the inner sets, then all of ``rows`` (the last row).
     """
     sets = [[r for r in rows if r != j] for j in rows] + [list(rows)]
     current = fit_folds(case, (), sets)
-    chosen, tried = (), {"none": _inner_error(case, current, rows)}
-    while len(chosen) < len(candidates):
-        trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, (e,)))
-                  for e in candidates if e not in chosen}
+    chosen, error, dropped = (), _inner_error(case, current, rows), set()
+    tried = {"none": error}
+    while remaining := [e for e in candidates if e not in chosen and e not in dropped]:
+        trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, (e,))) for e in remaining}
         errors = {e: _inner_error(case, fits, rows) for e, fits in trials.items()}
         tried.update({"+".join(chosen + (e,)): err for e, err in errors.items()})
         best = min(errors, key=errors.get)
-        if errors[best] > (1.0 - min_gain) * tried["+".join(chosen) or "none"]:
+        if errors[best] > (1.0 - min_gain) * error:
             break
-        chosen, current = chosen + (best,), trials[best]
+        chosen, current, error = _drop_unneeded(case, rows, sets, chosen + (best,), trials[best], errors[best],
+                                                tried, dropped, min_gain)
     return chosen, tried, current
+
+
+def _drop_unneeded(case, rows, sets, chosen, fits: FoldFits, error: float, tried: dict, dropped: set, min_gain: float):
+    """``chosen`` (its ``fits`` and inner ``error``) without each earlier pick the later ones make unneeded:
+    refitted without it from ``fits``' values, the inner error must rise by ``min_gain`` of the error
+    with it, as it had to fall when it joined. Two laws can take up one gap in turn - a force growing
+    with crush speed read first as rate hardening, then as damping - and the first must not stay by
+    its order alone (the diagnosis' rule, docs/decisions.md, section 43). A dropped effect joins
+    ``dropped`` and is not tried again; each check is recorded in ``tried``. Returns the effects, fits
+    and inner error kept."""
+    for e in chosen[:-1]:
+        rest = tuple(x for x in chosen if x != e)
+        names = {p.name for p in parameters_to_fit(case, rest)}
+        refit = fit_folds(case, rest, sets, start=fits.theta[:, [p.name in names for p in fits.params]])
+        tried[f"{'+'.join(rest)} (refitted without {e})"] = without = _inner_error(case, refit, rows)
+        if error > (1.0 - min_gain) * without:
+            dropped.add(e)
+            chosen, fits, error = rest, refit, without
+    return chosen, fits, error
 
 
 def _inner_error(case, fits: FoldFits, rows) -> float:
