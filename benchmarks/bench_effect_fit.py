@@ -2,6 +2,7 @@
 repeats, and the rollout with each sample's own copy of its CAE tables as the baseline ratio.
 
     .venv/bin/python benchmarks/bench_effect_fit.py [CAMPAIGN] [--holdout T05] [--samples 1100]
+                                                    [--candidates E ...]
 
 Without CAMPAIGN the `paper` campaign (seed 0) is generated in memory with 200 CAE runs. A fit's
 rollouts hold every training set x test x Jacobian column (about 1000 samples on 11 tests).
@@ -17,13 +18,14 @@ from unittest import mock
 
 import numpy as np
 
+from crashfuse.catalogue import EFFECTS
 from crashfuse.io.campaign import read_campaign
 from crashfuse.method import effect_fit, laws
 from crashfuse.method.effect_fit import DT, parameters_to_fit, test_case
 from crashfuse.method.hybrid import fit_physics
 from crashfuse.method.surrogate import CAESurrogate
 
-EFFECTS = ("powertrain", "strain_rate")  # what `auto` chooses on `paper`
+ROLLOUT_EFFECTS = ("powertrain", "strain_rate")  # what `auto` chooses on `paper`
 
 
 def _campaign(folder):
@@ -55,6 +57,7 @@ def main(argv=None) -> int:
     ap.add_argument("campaign", nargs="?")
     ap.add_argument("--holdout", default="T05")
     ap.add_argument("--samples", type=int, default=1100)
+    ap.add_argument("--candidates", nargs="+", default=list(EFFECTS), help="the effects `auto` chooses among")
     args = ap.parse_args(argv)
     campaign = _campaign(args.campaign)
     surrogate = CAESurrogate(random_state=0).fit(campaign)
@@ -62,25 +65,29 @@ def main(argv=None) -> int:
     case = test_case(campaign.subset([*train, *campaign.cae]), surrogate)
 
     rows = np.arange(args.samples) % len(case.test_ids)
-    params = parameters_to_fit(case, EFFECTS)
+    params = parameters_to_fit(case, ROLLOUT_EFFECTS)
     theta = {p.name: np.full(rows.size, p.start[0]) for p in params}
     shared = case.plant.subset(rows)
     own = _own_tables(shared)
-    runs = {name: laws.simulate(p, EFFECTS, theta, DT, case.n_steps).decel for name, p in (("shared", shared),
-                                                                                           ("own", own))}
-    t_shared, t_own = (_best(lambda p=p: laws.simulate(p, EFFECTS, theta, DT, case.n_steps)) for p in (shared, own))
+
+    def roll(plant):
+        return laws.simulate(plant, ROLLOUT_EFFECTS, theta, DT, case.n_steps)
+
+    same = np.array_equal(roll(shared).decel, roll(own).decel)
+    t_shared, t_own = (_best(lambda p=p: roll(p)) for p in (shared, own))
 
     calls = []
     counted = mock.patch.object(effect_fit, "simulate", side_effect=lambda plant, *a: calls.append(plant.row.size)
                                 or laws.simulate(plant, *a))
     t0, c0 = time.perf_counter(), time.process_time()
     with counted:
-        fit = fit_physics(campaign, train, "auto", surrogate)
+        fit = fit_physics(campaign, train, "auto", surrogate, candidates=tuple(args.candidates))
     t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
 
-    print(f"CAE + {'+'.join(EFFECTS)} rollout, {rows.size} samples x {case.n_steps + 1} steps (CPU, best of 3):")
+    effects = "+".join(ROLLOUT_EFFECTS)
+    print(f"CAE + {effects} rollout, {rows.size} samples x {case.n_steps + 1} steps (CPU, best of 3):")
     print(f"  tables shared by condition: {t_shared:.3f} s; each sample its own copy: {t_own:.3f} s "
-          f"-> {t_own / t_shared:.2f}x; identical: {np.array_equal(runs['shared'], runs['own'])}")
+          f"-> {t_own / t_shared:.2f}x; identical: {same}")
     print(f"one fold's `auto` effect choice (without {args.holdout}, {len(train)} tests): {t_fit:.1f} s wall, "
           f"{c_fit:.1f} s CPU; chose {'+'.join(fit.effects) or 'none'}")
     print(f"  {len(calls)} batched rollouts, {np.mean(calls):.0f} samples each on average "

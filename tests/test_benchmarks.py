@@ -63,3 +63,11 @@ def test_bench_campaign_read_runs_on_a_tiny_campaign(tiny_campaign, capsys):
     assert out["runs"] == 22 and out["tests"] == 3
     assert out["full_s"] > 0 and out["lazy_tests_s"] >= out["lazy_open_s"] > 0
     assert out["ratio"] == pytest.approx(out["full_s"] / out["lazy_tests_s"])
+
+
+def test_bench_effect_fit_runs_on_a_tiny_campaign(tiny_campaign, capsys):
+    _script("bench_effect_fit").main([str(tiny_campaign), "--holdout", "T05", "--samples", "30",
+                                      "--candidates", "mass"])
+    out = capsys.readouterr().out
+    assert "identical: True" in out  # samples sharing their condition's tables roll out the same pulses
+    assert "one fold's `auto` effect choice (without T05, 2 tests)" in out and "batched rollouts" in out
