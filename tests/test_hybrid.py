@@ -182,6 +182,20 @@ def test_a_powertrain_arrest_no_training_test_reached_is_switched_off(worlds):
     assert theta[f"powertrain.gap[{near}]"] == pytest.approx(near_reach - 0.05)
 
 
+def test_a_warm_start_stuck_in_a_worse_basin_is_beaten_by_the_listed_starts(worlds):
+    """``auto`` warm-starts a bigger effect set from the smaller one's fit; where that start holds a fit
+    in a worse basin, the listed starts tried beside it (``listed_too``) keep each set's best."""
+    damped, _, surrogate = worlds
+    case = effect_fit.test_case(damped.subset([*damped.tests, *damped.cae]), surrogate)
+    sets = effect_fit.loto_sets(len(case.test_ids))[:2]
+    stuck = np.tile([10.0, 3.0], (len(sets), 1))  # a weak damping of high exponent: the fit stays near it
+    warm = effect_fit.fit_folds(case, ("damping",), sets, start=stuck)
+    listed = effect_fit.fit_folds(case, ("damping",), sets)
+    assert (warm.cost > 2.0 * listed.cost).all()  # the start alone loses: the check below can fail
+    both = effect_fit.fit_folds(case, ("damping",), sets, start=stuck, listed_too=True)
+    np.testing.assert_allclose(both.cost, np.minimum(warm.cost, listed.cost), rtol=1e-9)
+
+
 def test_fit_reports_the_laws_and_their_fallbacks():
     from crashfuse.cli import _physics_line
     from crashfuse.method.hybrid import PhysicsFirst
@@ -201,7 +215,7 @@ def test_an_earlier_pick_the_later_ones_make_unneeded_leaves(monkeypatch):
 
     from crashfuse.method import hybrid
 
-    def fit(case, effects, sets, start=None):
+    def fit(case, effects, sets, start=None, listed_too=False):
         return SimpleNamespace(effects=tuple(effects), params=[SimpleNamespace(name=e) for e in effects],
                                theta=np.zeros((len(sets), len(effects))), refit=start is not None and len(effects) == 1)
 

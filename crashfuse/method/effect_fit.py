@@ -160,7 +160,8 @@ def parameters_to_fit(case: TestCase, effects) -> tuple[Param, ...]:
     return tuple(p for e in effects for p in parameters(e, case.plant.labels, hint))
 
 
-def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = None) -> FoldFits:
+def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = None,
+              listed_too: bool = False) -> FoldFits:
     """Fit ``effects`` on each training set (vectorised Levenberg-Marquardt, multi-start).
 
     Parameters
@@ -173,6 +174,10 @@ def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = No
     start : ndarray, shape (n_sets, n_params), optional
         The starting point per set (SI), e.g. the fit of a smaller effect set plus the new
         effect's first listed start; without it every listed start is tried.
+    listed_too : bool
+        With ``start``, try every listed start as well and keep each set's best: a warm start
+        carries the smaller set's compromise (a powertrain fitted without the rate hardening it
+        absorbed) and can hold a fit in that basin.
 
     Returns
     -------
@@ -181,7 +186,7 @@ def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = No
     params = parameters_to_fit(case, effects)
     if not params:
         return FoldFits(tuple(effects), (), np.empty((len(train_sets), 0)), _costs(case, train_sets))
-    starts = _starts(params, len(train_sets), start)
+    starts = _starts(params, len(train_sets), start, listed_too)
     n_start = starts.shape[0]
     sets = [list(t) for t in train_sets] * n_start
     z = np.log(np.concatenate(starts))
@@ -202,13 +207,16 @@ def warm_start(case: TestCase, current: FoldFits, effects) -> np.ndarray | None:
     return np.hstack([current.theta, np.tile(new, (current.theta.shape[0], 1))])
 
 
-def _starts(params, n_sets: int, extra) -> np.ndarray:
-    """Starting points, shape (n_start, n_sets, n_params): ``extra``, else each parameter's listed starts in turn."""
-    if extra is not None:
-        return np.asarray(extra, float)[None]
+def _starts(params, n_sets: int, extra, listed_too: bool = False) -> np.ndarray:
+    """Starting points, shape (n_start, n_sets, n_params): ``extra`` (and, ``listed_too``, each
+    parameter's listed starts in turn), else the listed starts."""
     n = max(len(p.start) for p in params)
     base = np.array([[p.start[i % len(p.start)] for p in params] for i in range(n)])
-    return np.repeat(base[:, None, :], n_sets, axis=1)
+    listed = np.repeat(base[:, None, :], n_sets, axis=1)
+    if extra is None:
+        return listed
+    extra = np.asarray(extra, float)[None]
+    return np.concatenate([extra, listed]) if listed_too else extra
 
 
 def _bounds(params):

@@ -234,7 +234,8 @@ def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -
     chosen, error, dropped = (), _inner_error(case, current, rows), set()
     tried = {"none": error}
     while remaining := [e for e in candidates if e not in chosen and e not in dropped]:
-        trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, (e,))) for e in remaining}
+        trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, (e,)),
+                                 listed_too=True) for e in remaining}
         errors = {e: _inner_error(case, fits, rows) for e, fits in trials.items()}
         tried.update({"+".join(chosen + (e,)): err for e, err in errors.items()})
         best = min(errors, key=errors.get)
@@ -256,7 +257,8 @@ def _drop_unneeded(case, rows, sets, chosen, fits: FoldFits, error: float, tried
     for e in chosen[:-1]:
         rest = tuple(x for x in chosen if x != e)
         names = {p.name for p in parameters_to_fit(case, rest)}
-        refit = fit_folds(case, rest, sets, start=fits.theta[:, [p.name in names for p in fits.params]])
+        refit = fit_folds(case, rest, sets, start=fits.theta[:, [p.name in names for p in fits.params]],
+                          listed_too=True)
         tried[f"{'+'.join(rest)} (refitted without {e})"] = without = _inner_error(case, refit, rows)
         if error > (1.0 - min_gain) * without:
             dropped.add(e)
