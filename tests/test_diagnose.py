@@ -3,6 +3,7 @@ verdict on withheld-effect campaigns, the output files and bad input."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -190,7 +191,7 @@ def test_fit_recovers_parameters_of_its_own_law(case):
              "mass.extra": np.full(rows.size, 150.0), "mass.k_link": np.full(rows.size, 1e12)}
     from crashfuse.method.laws import simulate
     made = simulate(case.plant, ("damping", "mass"), truth, ef.DT, case.n_steps).decel
-    synthetic = ef.TestCase(case.test_ids, case.plant, made, np.ones_like(case.mask), case.time, case.cae_source)
+    synthetic = dataclasses.replace(case, target=made, mask=np.ones_like(case.mask))
     fits = ef.fit_folds(synthetic, ("damping", "mass"), [list(rows)])
     got = dict(zip([p.name for p in fits.params], fits.theta[0]))
     assert got["damping.c"] == pytest.approx(3000.0, rel=0.01)

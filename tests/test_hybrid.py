@@ -187,19 +187,17 @@ def test_the_inner_error_predicts_a_test_that_alone_reached_its_engine_without_i
     that is the only one of its powertrain label meets no arrest (fit_physics switches it off), not
     the engine its inner fit left at the starting point."""
     from crashfuse.method import hybrid
-    from crashfuse.signals.domain import displacement_branches
 
     damped, _, surrogate = worlds
     case = effect_fit.test_case(damped.subset([*damped.tests, *damped.cae]), surrogate)
     group = case.plant.group
     sole = next(r for r in range(len(group)) if (group == group[r]).sum() > 1)  # keep it alone among ``rows``
     rows = [sole] + [r for r in range(len(group)) if group[r] != group[sole]]
-    crush = np.array([displacement_branches(damped.pulses[t]).s_max for t in case.test_ids])
     params = effect_fit.parameters_to_fit(case, ("powertrain",))
     value = {p.name: (0.05 if ".gap[" in p.name else p.upper if ".mass[" in p.name else p.start[0]) for p in params}
     theta = np.tile([value[p.name] for p in params], (len(rows) + 1, 1))  # an engine every test reaches at once
     fits = effect_fit.FoldFits(("powertrain",), params, theta, np.zeros(len(rows) + 1))
-    guarded = hybrid._inner_error(case, fits, rows, crush)
+    guarded = hybrid._inner_error(case, fits, rows)
     unguarded = effect_fit.predict(case, fits, range(len(rows)), rows)[1]
     off = theta.copy()
     off[0, [p.name == f"powertrain.gap[{case.plant.labels[group[sole]]}]" for p in params]] = hybrid.UNREACHED_GAP
@@ -252,9 +250,9 @@ def test_an_earlier_pick_the_later_ones_make_unneeded_leaves(monkeypatch):
     monkeypatch.setattr(hybrid, "parameters_to_fit", lambda case, effects: [SimpleNamespace(name=e) for e in effects],
                         raising=False)
     monkeypatch.setattr(hybrid, "_inner_error",
-                        lambda case, f, rows, crush: 31.0 if f.refit else table[tuple(sorted(f.effects))])
-    effects, tried, fits = hybrid.choose_effects(None, [0, 1, 2], None, ("A", "B", "C"))
+                        lambda case, f, rows: 31.0 if f.refit else table[tuple(sorted(f.effects))])
+    effects, tried, fits = hybrid.choose_effects(None, [0, 1, 2], ("A", "B", "C"))
     assert effects == ("B",) and fits.effects == ("B",)
     assert tried["B (refitted without A)"] == 31.0 and tried["B+C"] == 29.0 and "A+B+C" not in tried
     table[("A", "B")] = 25.0  # now A still removes more than 10 % beyond B refitted: it stays
-    assert hybrid.choose_effects(None, [0, 1, 2], None, ("A", "B", "C"))[0] == ("A", "B")
+    assert hybrid.choose_effects(None, [0, 1, 2], ("A", "B", "C"))[0] == ("A", "B")

@@ -23,6 +23,7 @@ from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
 from crashfuse.method.projection import cae_curve
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
+from crashfuse.signals.domain import displacement_branches
 
 DT = 1.6e-4  # s, rollout step of the fits (2 samples of a 12.5 kHz campaign; Verlet error << noise)
 RECORD = 0.1  # s, longest record compared
@@ -52,6 +53,8 @@ class TestCase:
         Rollout times in s (step :data:`DT`).
     cae_source : list of str
         ``companion`` or ``surrogate`` per test.
+    crush : ndarray, shape (n_tests,)
+        Each test's largest measured crush in m (where a law that acts beyond some crush was seen).
     rate_aware : bool
         Whether the CAE force follows the rollout's crush speed (:mod:`crashfuse.method.laws`).
     """
@@ -62,6 +65,7 @@ class TestCase:
     mask: np.ndarray
     time: np.ndarray
     cae_source: list
+    crush: np.ndarray
     rate_aware: bool = False
 
     @property
@@ -107,7 +111,8 @@ def test_case(campaign: Campaign, surrogate: CAESurrogate | None = None, random_
                             p.meta.get("drive")) for p in pulses] if rate_aware else None)
     force_rate = functools.partial(crush_force_rate, [campaign.pulses[r] for r in campaign.cae]) if rate_aware else None
     plant = curve_plant(curves, [p.mass for p in pulses], labels, s_hi, faster, force_rate)
-    return TestCase(list(campaign.tests), plant, target, mask, time, sources, rate_aware)
+    crush = np.array([displacement_branches(p).s_max for p in pulses])
+    return TestCase(list(campaign.tests), plant, target, mask, time, sources, crush, rate_aware)
 
 
 def faster_curve(surrogate: CAESurrogate, v0: float, front_weight: float, rear_weight: float, powertrain=None,

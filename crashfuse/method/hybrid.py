@@ -33,7 +33,6 @@ from crashfuse.method.effect_fit import (DT, MIN_CAE_SPEEDS, FoldFits, fit_folds
                                          predict, test_case, warm_start)
 from crashfuse.method.laws import N_S, curve_plant, simulate
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
-from crashfuse.signals.domain import displacement_branches
 from crashfuse.signals.pulse import Pulse
 
 AUTO = "auto"
@@ -173,14 +172,13 @@ def fit_physics(campaign: Campaign, train, effects, surrogate: CAESurrogate, min
     """
     case = test_case(campaign.subset([*train, *campaign.cae]), surrogate)
     rows = list(range(len(case.test_ids)))
-    crush = np.array([displacement_branches(campaign.pulses[t]).s_max for t in case.test_ids])
     notes, inner = [], {}
     if effects == AUTO:
         if not case.rate_aware:
             candidates = tuple(e for e in candidates if e not in RATE_EFFECTS)
             notes.append(f"rate laws {list(RATE_EFFECTS)} left out: the CAE runs span fewer than {MIN_CAE_SPEEDS} "
                          f"impact speeds")
-        effects, inner, fits = choose_effects(case, rows, crush, candidates, min_gain)
+        effects, inner, fits = choose_effects(case, rows, candidates, min_gain)
     elif not case.rate_aware and set(effects) & set(RATE_EFFECTS):
         raise InputError(f"{sorted(set(effects) & set(RATE_EFFECTS))} need CAE runs at {MIN_CAE_SPEEDS} or more "
                          f"impact speeds (the CAE model's own rate sensitivity), the campaign has fewer",
@@ -188,18 +186,18 @@ def fit_physics(campaign: Campaign, train, effects, surrogate: CAESurrogate, min
     else:
         fits = fit_folds(case, effects, [rows])
     theta = {p.name: float(v) for p, v in zip(fits.params, fits.theta[-1])}
-    notes += _switch_off_unreached(theta, _reach(case, crush, rows))
+    notes += _switch_off_unreached(theta, _reach(case, rows))
     plant = case.plant  # its rate sensitivity as tabulated for the fit (force per crush speed = dadv x mass)
     rate = np.array([plant.dadv[0], plant.dadv2[0]]) * plant.mass[0]
     return PhysicsFirst(tuple(effects), sorted(train), theta, plant.labels, plant.s_hi, rate, case.rate_aware,
                         float(fits.cost[-1]), inner, notes)
 
 
-def _reach(case, crush, rows) -> dict:
+def _reach(case, rows) -> dict:
     """Largest measured crush (m) per powertrain label of ``case`` among the tests ``rows`` (0 for a
     label none of them has)."""
     group = case.plant.group
-    return {label: max((crush[r] for r in rows if group[r] == g), default=0.0)
+    return {label: max((case.crush[r] for r in rows if group[r] == g), default=0.0)
             for g, label in enumerate(case.plant.labels)}
 
 
@@ -219,7 +217,7 @@ def _switch_off_unreached(theta: dict, reach: dict) -> list:
     return notes
 
 
-def choose_effects(case, rows, crush, candidates=EFFECTS, min_gain: float = MIN_GAIN) -> tuple[tuple, dict, FoldFits]:
+def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -> tuple[tuple, dict, FoldFits]:
     """Forward selection of effects by inner leave-one-test-out squared error over ``rows``.
 
     Each round fits every remaining candidate with the chosen ones (from their fits and from the
@@ -233,8 +231,6 @@ def choose_effects(case, rows, crush, candidates=EFFECTS, min_gain: float = MIN_
     case : TestCase
     rows : list of int
         The tests of ``case`` to choose on.
-    crush : ndarray, shape (n_tests,)
-        Each test's largest measured crush, m (the powertrain guard, :func:`_switch_off_unreached`).
     candidates : sequence of str
     min_gain : float
 
@@ -251,22 +247,22 @@ def choose_effects(case, rows, crush, candidates=EFFECTS, min_gain: float = MIN_
     """
     sets = [[r for r in rows if r != j] for j in rows] + [list(rows)]
     current = fit_folds(case, (), sets)
-    chosen, error, dropped = (), _inner_error(case, current, rows, crush), set()
+    chosen, error, dropped = (), _inner_error(case, current, rows), set()
     tried = {"none": error}
     while remaining := [e for e in candidates if e not in chosen and e not in dropped]:
         trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, (e,)),
                                  listed_too=True) for e in remaining}
-        errors = {e: _inner_error(case, fits, rows, crush) for e, fits in trials.items()}
+        errors = {e: _inner_error(case, fits, rows) for e, fits in trials.items()}
         tried.update({"+".join(chosen + (e,)): err for e, err in errors.items()})
         best = min(errors, key=errors.get)
         if errors[best] > (1.0 - min_gain) * error:
             break
-        chosen, current, error = _drop_unneeded(case, rows, crush, sets, chosen + (best,), trials[best],
+        chosen, current, error = _drop_unneeded(case, rows, sets, chosen + (best,), trials[best],
                                                 errors[best], tried, dropped, min_gain)
     return chosen, tried, current
 
 
-def _drop_unneeded(case, rows, crush, sets, chosen, fits: FoldFits, error: float, tried: dict, dropped: set,
+def _drop_unneeded(case, rows, sets, chosen, fits: FoldFits, error: float, tried: dict, dropped: set,
                    min_gain: float):
     """``chosen`` (its ``fits`` and inner ``error``) without each earlier pick the later ones make unneeded:
     refitted without it from ``fits``' values, the inner error must rise by ``min_gain`` of the error
@@ -280,14 +276,14 @@ def _drop_unneeded(case, rows, crush, sets, chosen, fits: FoldFits, error: float
         names = {p.name for p in parameters_to_fit(case, rest)}
         refit = fit_folds(case, rest, sets, start=fits.theta[:, [p.name in names for p in fits.params]],
                           listed_too=True)
-        tried[f"{'+'.join(rest)} (refitted without {e})"] = without = _inner_error(case, refit, rows, crush)
+        tried[f"{'+'.join(rest)} (refitted without {e})"] = without = _inner_error(case, refit, rows)
         if error > (1.0 - min_gain) * without:
             dropped.add(e)
             chosen, fits, error = rest, refit, without
     return chosen, fits, error
 
 
-def _inner_error(case, fits: FoldFits, rows, crush) -> float:
+def _inner_error(case, fits: FoldFits, rows) -> float:
     """Mean over ``rows`` of each test's squared error, predicted by the fit of the inner set without it
     as :func:`fit_physics` would predict it: with the powertrain law of a label off where none of the
     inner set's tests of that label crushed to its fitted gap. Unguarded, a test that alone reached
@@ -298,6 +294,6 @@ def _inner_error(case, fits: FoldFits, rows, crush) -> float:
         names = [p.name for p in fits.params]
         for j, held in enumerate(rows):
             values = dict(zip(names, theta[j]))
-            _switch_off_unreached(values, _reach(case, crush, [r for r in rows if r != held]))
+            _switch_off_unreached(values, _reach(case, [r for r in rows if r != held]))
             theta[j] = [values[n] for n in names]
     return float(np.mean(predict(case, dataclasses.replace(fits, theta=theta), range(len(rows)), rows)[1]))
