@@ -164,16 +164,12 @@ def test_an_evaluation_labels_the_hybrid_and_records_its_effects(worlds, tmp_pat
 
 
 def test_a_powertrain_arrest_no_training_test_reached_is_switched_off(worlds):
-    from crashfuse.method.effect_fit import powertrain_label
-    from crashfuse.method.hybrid import UNREACHED_GAP, _switch_off_unreached
-    from crashfuse.signals.domain import displacement_branches
+    from crashfuse.method.hybrid import UNREACHED_GAP, _reach, _switch_off_unreached
 
-    damped = worlds[0]
-    train = damped.tests[:-1]
-    reach = {}
-    for t in train:
-        label = powertrain_label(damped, t)
-        reach[label] = max(reach.get(label, 0.0), displacement_branches(damped.pulses[t]).s_max)
+    damped, _, surrogate = worlds
+    case = effect_fit.test_case(damped.subset([*damped.tests[:-1], *damped.cae]), surrogate)
+    reach = _reach(case, range(len(case.test_ids)))
+    assert all(0.0 < r == max(case.crush[case.plant.group == g]) for g, r in enumerate(reach.values()))
     (far, far_reach), (near, near_reach) = sorted(reach.items())[:2]
     theta = {f"powertrain.gap[{far}]": far_reach + 0.01, f"powertrain.gap[{near}]": near_reach - 0.05,
              f"powertrain.mass[{far}]": 200.0, f"powertrain.mass[{near}]": 200.0, "powertrain.f_mount": 5e4}
