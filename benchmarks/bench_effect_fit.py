@@ -1,8 +1,9 @@
-"""The hybrid's effect fits: one fold's `auto` effect choice, the batched CAE + effects rollout it
-repeats, and the rollout with each sample's own copy of its CAE tables as the baseline ratio.
+"""The hybrid's effect fits: one fold's `auto` effect choice; the batched CAE + effects rollout it
+repeats, against each sample holding its own copy of its CAE tables (the baseline ratio); and that
+rollout's cost over batch sizes (``--sizes``), split into a part per rollout and a part per sample.
 
     .venv/bin/python benchmarks/bench_effect_fit.py [CAMPAIGN] [--holdout T05] [--samples 1100]
-                                                    [--candidates E ...]
+                                                    [--candidates E ...] [--sizes N ...]
 
 Without CAMPAIGN the `paper` campaign (seed 0) is generated in memory with 200 CAE runs. A fit's
 rollouts hold every training set x test x Jacobian column (about 1000 samples on 11 tests).
@@ -58,23 +59,28 @@ def main(argv=None) -> int:
     ap.add_argument("--holdout", default="T05")
     ap.add_argument("--samples", type=int, default=1100)
     ap.add_argument("--candidates", nargs="+", default=list(EFFECTS), help="the effects `auto` chooses among")
+    ap.add_argument("--sizes", nargs="+", type=int, default=[100, 300, 1100, 4400],
+                    help="batch sizes (samples) of the rollout cost scan")
     args = ap.parse_args(argv)
     campaign = _campaign(args.campaign)
     surrogate = CAESurrogate(random_state=0).fit(campaign)
     train = [t for t in campaign.tests if t != args.holdout]
     case = test_case(campaign.subset([*train, *campaign.cae]), surrogate)
 
-    rows = np.arange(args.samples) % len(case.test_ids)
     params = parameters_to_fit(case, ROLLOUT_EFFECTS)
-    theta = {p.name: np.full(rows.size, p.start[0]) for p in params}
-    shared = case.plant.subset(rows)
-    own = _own_tables(shared)
 
-    def roll(plant):
+    def batch(n):
+        rows = np.arange(n) % len(case.test_ids)
+        return case.plant.subset(rows), {p.name: np.full(n, p.start[0]) for p in params}
+
+    def roll(plant, theta):
         return laws.simulate(plant, ROLLOUT_EFFECTS, theta, DT, case.n_steps)
 
-    same = np.array_equal(roll(shared).decel, roll(own).decel)
-    t_shared, t_own = (_best(lambda p=p: roll(p)) for p in (shared, own))
+    shared, theta = batch(args.samples)
+    own = _own_tables(shared)
+    same = np.array_equal(roll(shared, theta).decel, roll(own, theta).decel)
+    t_shared, t_own = (_best(lambda p=p: roll(p, theta)) for p in (shared, own))
+    scan = {n: _best(lambda b=batch(n): roll(*b)) for n in args.sizes}
 
     calls = []
     counted = mock.patch.object(effect_fit, "simulate", side_effect=lambda plant, *a: calls.append(plant.row.size)
@@ -85,9 +91,12 @@ def main(argv=None) -> int:
     t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
 
     effects = "+".join(ROLLOUT_EFFECTS)
-    print(f"CAE + {effects} rollout, {rows.size} samples x {case.n_steps + 1} steps (CPU, best of 3):")
+    print(f"CAE + {effects} rollout, {args.samples} samples x {case.n_steps + 1} steps (CPU, best of 3):")
     print(f"  tables shared by condition: {t_shared:.3f} s; each sample its own copy: {t_own:.3f} s "
           f"-> {t_own / t_shared:.2f}x; identical: {same}")
+    per_sample, fixed = np.polyfit(list(scan), list(scan.values()), 1) if len(scan) > 1 else (np.nan, np.nan)
+    print("  by batch size: " + ", ".join(f"{n} samples {t:.3f} s" for n, t in scan.items())
+          + f" -> about {fixed:.3f} s per rollout + {1e3 * per_sample:.3f} ms per sample")
     print(f"one fold's `auto` effect choice (without {args.holdout}, {len(train)} tests): {t_fit:.1f} s wall, "
           f"{c_fit:.1f} s CPU; chose {'+'.join(fit.effects) or 'none'}")
     print(f"  {len(calls)} batched rollouts, {np.mean(calls):.0f} samples each on average "
