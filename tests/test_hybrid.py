@@ -193,12 +193,12 @@ def test_the_inner_error_predicts_a_test_that_alone_reached_its_engine_without_i
     value = {p.name: (0.05 if ".gap[" in p.name else p.upper if ".mass[" in p.name else p.start[0]) for p in params}
     theta = np.tile([value[p.name] for p in params], (len(rows) + 1, 1))  # an engine every test reaches at once
     fits = effect_fit.FoldFits(("powertrain",), params, theta, np.zeros(len(rows) + 1))
-    guarded = hybrid._inner_error(case, fits, rows)
+    guarded = hybrid._inner_errors(case, fits, rows)
     unguarded = effect_fit.predict(case, fits, range(len(rows)), rows)[1]
     off = theta.copy()
     off[0, [p.name == f"powertrain.gap[{case.plant.labels[group[sole]]}]" for p in params]] = hybrid.UNREACHED_GAP
     alone = effect_fit.predict(case, dataclasses.replace(fits, theta=off), [0], [sole])[1][0]
-    assert guarded == pytest.approx(np.mean([alone, *unguarded[1:]]), rel=1e-12)
+    np.testing.assert_allclose(guarded, [alone, *unguarded[1:]], rtol=1e-12)
     assert abs(alone - unguarded[0]) > 0.1 * unguarded[0]  # the engine matters there: the check can fail
 
 
@@ -245,10 +245,38 @@ def test_an_earlier_pick_the_later_ones_make_unneeded_leaves(monkeypatch):
     monkeypatch.setattr(hybrid, "warm_start", lambda case, current, effects: None)
     monkeypatch.setattr(hybrid, "parameters_to_fit", lambda case, effects: [SimpleNamespace(name=e) for e in effects],
                         raising=False)
-    monkeypatch.setattr(hybrid, "_inner_error",
-                        lambda case, f, rows: 31.0 if f.refit else table[tuple(sorted(f.effects))])
-    effects, tried, fits = hybrid.choose_effects(None, [0, 1, 2], ("A", "B", "C"))
+    monkeypatch.setattr(hybrid, "_per_label", lambda effect: True)
+    monkeypatch.setattr(hybrid, "_inner_errors",
+                        lambda case, f, rows: np.full(3, 31.0 if f.refit else table[tuple(sorted(f.effects))]))
+    effects, tried, fits, _ = hybrid.choose_effects(None, [0, 1, 2], ("A", "B", "C"))
     assert effects == ("B",) and fits.effects == ("B",)
     assert tried["B (refitted without A)"] == 31.0 and tried["B+C"] == 29.0 and "A+B+C" not in tried
     table[("A", "B")] = 25.0  # now A still removes more than 10 % beyond B refitted: it stays
     assert hybrid.choose_effects(None, [0, 1, 2], ("A", "B", "C"))[0] == ("A", "B")
+
+
+def test_a_law_of_no_label_joins_only_where_it_gains_on_more_than_one_label(monkeypatch):
+    """Scripted inner errors on two labels' tests: rate hardening removes 45 % of the error, all of it on
+    the first label's tests, and is refused; extra mass removes 30 % spread over both and joins. The
+    powertrain law, one per label, may gain on one label alone."""
+    from types import SimpleNamespace
+
+    from crashfuse.method import hybrid
+
+    def fit(case, effects, sets, start=None, listed_too=False):
+        return SimpleNamespace(effects=tuple(effects), params=[], theta=np.zeros((len(sets), 0)))
+
+    table = {(): [10, 10, 10, 10], ("strain_rate",): [1, 1, 10, 10], ("mass",): [7, 7, 7, 7],
+             ("powertrain",): [2, 2, 10, 10], ("mass", "strain_rate"): [1, 1, 7, 7],
+             ("mass", "powertrain"): [2, 2, 7, 7], ("powertrain", "strain_rate"): [1, 1, 10, 10]}
+    monkeypatch.setattr(hybrid, "fit_folds", fit)
+    monkeypatch.setattr(hybrid, "warm_start", lambda case, current, effects: None)
+    monkeypatch.setattr(hybrid, "parameters_to_fit", lambda case, effects: [])
+    monkeypatch.setattr(hybrid, "_inner_errors", lambda case, f, rows: np.array(table[tuple(sorted(f.effects))], float))
+    case = SimpleNamespace(plant=SimpleNamespace(group=np.array([0, 0, 1, 1])))
+    effects, tried, _, notes = hybrid.choose_effects(case, [0, 1, 2, 3], ("strain_rate", "mass"))
+    assert effects == ("mass",) and tried["strain_rate"] == 5.5
+    assert len(notes) == 2 and all(n.startswith("strain_rate refused") for n in notes)
+    assert hybrid.choose_effects(case, [0, 1, 2, 3], ("strain_rate", "powertrain"))[0] == ("powertrain",)
+    case.plant.group = np.array([0, 0, 0, 1])  # one test of the second label: the rule has nothing to compare
+    assert hybrid.choose_effects(case, [0, 1, 2, 3], ("strain_rate", "mass"))[0][0] == "strain_rate"

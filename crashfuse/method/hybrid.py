@@ -10,7 +10,8 @@ the same curve plus the predicted bias. Without effects the fit is the GMM-GPR m
 ``effects="auto"`` chooses the effects by forward selection on the training tests alone: an effect
 joins when it cuts their inner leave-one-test-out squared error (each training test predicted by
 the laws fitted on the others) by at least :data:`MIN_GAIN`, and an earlier pick leaves when the
-later ones make it unneeded (without it the error rises by less than that). Rate laws (``strain_rate``,
+later ones make it unneeded (without it the error rises by less than that). A law of no powertrain
+label must gain so on the tests of more than one label. Rate laws (``strain_rate``,
 ``damping``) need CAE runs at :data:`~crashfuse.method.effect_fit.MIN_CAE_SPEEDS` impact speeds,
 which separate the CAE model's own rate sensitivity from the missing one: naming one without them
 is an error, and ``auto`` leaves them out and says so (:attr:`PhysicsFirst.notes`).
@@ -26,7 +27,7 @@ import dataclasses
 
 import numpy as np
 
-from crashfuse.catalogue import EFFECTS
+from crashfuse.catalogue import CATALOGUE, EFFECTS
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
 from crashfuse.method.effect_fit import (DT, MIN_CAE_SPEEDS, FoldFits, fit_folds, parameters_to_fit,
@@ -178,7 +179,8 @@ def fit_physics(campaign: Campaign, train, effects, surrogate: CAESurrogate, min
             candidates = tuple(e for e in candidates if e not in RATE_EFFECTS)
             notes.append(f"rate laws {list(RATE_EFFECTS)} left out: the CAE runs span fewer than {MIN_CAE_SPEEDS} "
                          f"impact speeds")
-        effects, inner, fits = choose_effects(case, rows, candidates, min_gain)
+        effects, inner, fits, refused = choose_effects(case, rows, candidates, min_gain)
+        notes += refused
     elif not case.rate_aware and set(effects) & set(RATE_EFFECTS):
         raise InputError(f"{sorted(set(effects) & set(RATE_EFFECTS))} need CAE runs at {MIN_CAE_SPEEDS} or more "
                          f"impact speeds (the CAE model's own rate sensitivity), the campaign has fewer",
@@ -217,14 +219,15 @@ def _switch_off_unreached(theta: dict, reach: dict) -> list:
     return notes
 
 
-def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -> tuple[tuple, dict, FoldFits]:
+def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -> tuple[tuple, dict, FoldFits, list]:
     """Forward selection of effects by inner leave-one-test-out squared error over ``rows``.
 
     Each round fits every remaining candidate with the chosen ones (from their fits and from the
     listed starts) on every inner training set and on all of ``rows`` at once; the best joins if it
     removes ``min_gain`` of the error, and an earlier pick it makes unneeded leaves
     (:func:`_drop_unneeded`). Each inner held-out test is predicted as the model fitted without it
-    would predict it (:func:`_inner_error`).
+    would predict it (:func:`_inner_errors`). A law that acts alike on every powertrain label may join
+    only where it gains on more than one label (:func:`_gains_on_labels`).
 
     Parameters
     ----------
@@ -244,47 +247,71 @@ def choose_effects(case, rows, candidates=EFFECTS, min_gain: float = MIN_GAIN) -
         earlier pick ``e``).
     fits : FoldFits
         The chosen set's fits: the inner sets, then all of ``rows`` (the last row).
+    notes : list of str
+        Candidates refused because their gain was one label's alone.
     """
     sets = [[r for r in rows if r != j] for j in rows] + [list(rows)]
     current = fit_folds(case, (), sets)
-    chosen, error, dropped = (), _inner_error(case, current, rows), set()
-    tried = {"none": error}
+    chosen, error, dropped, notes = (), _inner_errors(case, current, rows), set(), []
+    tried = {"none": float(error.mean())}
     while remaining := [e for e in candidates if e not in chosen and e not in dropped]:
         trials = {e: fit_folds(case, chosen + (e,), sets, start=warm_start(case, current, (e,)),
                                  listed_too=True) for e in remaining}
-        errors = {e: _inner_error(case, fits, rows) for e, fits in trials.items()}
-        tried.update({"+".join(chosen + (e,)): err for e, err in errors.items()})
-        best = min(errors, key=errors.get)
-        if errors[best] > (1.0 - min_gain) * error:
+        errors = {e: _inner_errors(case, fits, rows) for e, fits in trials.items()}
+        tried.update({"+".join(chosen + (e,)): float(err.mean()) for e, err in errors.items()})
+        gaining = [e for e in remaining if errors[e].mean() <= (1.0 - min_gain) * error.mean()]
+        spread = [e for e in gaining if _per_label(e) or _gains_on_labels(case, rows, error, errors[e], min_gain)]
+        notes += [f"{e} refused after {'+'.join(chosen) or 'none'}: its gain is on one powertrain label's tests only"
+                  for e in gaining if e not in spread]
+        if not spread:
             break
+        best = min(spread, key=lambda e: errors[e].mean())
         chosen, current, error = _drop_unneeded(case, rows, sets, chosen + (best,), trials[best],
                                                 errors[best], tried, dropped, min_gain)
-    return chosen, tried, current
+    return chosen, tried, current, notes
 
 
-def _drop_unneeded(case, rows, sets, chosen, fits: FoldFits, error: float, tried: dict, dropped: set,
+def _per_label(effect: str) -> bool:
+    """Whether the catalogue gives ``effect`` a quantity per powertrain label (it may act on one alone)."""
+    return any(q.per_label for q in CATALOGUE[effect].quantities)
+
+
+def _gains_on_labels(case, rows, before, after, min_gain: float) -> bool:
+    """Whether the inner squared errors ``after`` (per test of ``rows``) are ``min_gain`` below ``before``
+    on the tests of more than one powertrain label (labels with two or more tests among ``rows``;
+    True where fewer than two labels have that many). A law of no label acts on every test; a gain on
+    one label's tests alone is that label's own unmodelled physics taken up by the wrong law - rate
+    hardening fitted to one powertrain's engine impact (docs/decisions.md, section 49)."""
+    group = case.plant.group[np.asarray(rows)]
+    labels = [g for g in np.unique(group) if (group == g).sum() >= 2]
+    gains = [after[group == g].sum() <= (1.0 - min_gain) * before[group == g].sum() for g in labels]
+    return len(labels) < 2 or sum(gains) >= 2
+
+
+def _drop_unneeded(case, rows, sets, chosen, fits: FoldFits, error: np.ndarray, tried: dict, dropped: set,
                    min_gain: float):
-    """``chosen`` (its ``fits`` and inner ``error``) without each earlier pick the later ones make unneeded:
-    refitted without it from ``fits``' values, the inner error must rise by ``min_gain`` of the error
-    with it, as it had to fall when it joined. Two laws can take up one gap in turn - a force growing
+    """``chosen`` (its ``fits`` and inner ``error`` per test of ``rows``) without each earlier pick the
+    later ones make unneeded: refitted without it from ``fits``' values, the mean inner error must rise
+    by ``min_gain`` of the mean with it, as it had to fall when it joined. Two laws can take up one gap in turn - a force growing
     with crush speed read first as rate hardening, then as damping - and the first must not stay by
     its order alone (the diagnosis' rule, docs/decisions.md, section 43). A dropped effect joins
     ``dropped`` and is not tried again; each check is recorded in ``tried``. Returns the effects, fits
-    and inner error kept."""
+    and inner errors kept."""
     for e in chosen[:-1]:
         rest = tuple(x for x in chosen if x != e)
         names = {p.name for p in parameters_to_fit(case, rest)}
         refit = fit_folds(case, rest, sets, start=fits.theta[:, [p.name in names for p in fits.params]],
                           listed_too=True)
-        tried[f"{'+'.join(rest)} (refitted without {e})"] = without = _inner_error(case, refit, rows)
-        if error > (1.0 - min_gain) * without:
+        without = _inner_errors(case, refit, rows)
+        tried[f"{'+'.join(rest)} (refitted without {e})"] = float(without.mean())
+        if error.mean() > (1.0 - min_gain) * without.mean():
             dropped.add(e)
             chosen, fits, error = rest, refit, without
     return chosen, fits, error
 
 
-def _inner_error(case, fits: FoldFits, rows) -> float:
-    """Mean over ``rows`` of each test's squared error, predicted by the fit of the inner set without it
+def _inner_errors(case, fits: FoldFits, rows) -> np.ndarray:
+    """Each test of ``rows``' mean squared error, (m/s^2)^2, predicted by the fit of the inner set without it
     as :func:`fit_physics` would predict it: with the powertrain law of a label off where none of the
     inner set's tests of that label crushed to its fitted gap. Unguarded, a test that alone reached
     its label's engine met one fitted to nothing, and that error - noise of the starting point -
@@ -296,4 +323,4 @@ def _inner_error(case, fits: FoldFits, rows) -> float:
             values = dict(zip(names, theta[j]))
             _switch_off_unreached(values, _reach(case, [r for r in rows if r != held]))
             theta[j] = [values[n] for n in names]
-    return float(np.mean(predict(case, dataclasses.replace(fits, theta=theta), range(len(rows)), rows)[1]))
+    return predict(case, dataclasses.replace(fits, theta=theta), range(len(rows)), rows)[1]
