@@ -292,11 +292,11 @@ def _drop_unneeded(case, rows, sets, chosen, fits: FoldFits, error: np.ndarray, 
                    min_gain: float):
     """``chosen`` (its ``fits`` and inner ``error`` per test of ``rows``) without each earlier pick the
     later ones make unneeded: refitted without it from ``fits``' values, the mean inner error must rise
-    by ``min_gain`` of the mean with it, as it had to fall when it joined. Two laws can take up one gap in turn - a force growing
-    with crush speed read first as rate hardening, then as damping - and the first must not stay by
-    its order alone (the diagnosis' rule, docs/decisions.md, section 43). A dropped effect joins
-    ``dropped`` and is not tried again; each check is recorded in ``tried``. Returns the effects, fits
-    and inner errors kept."""
+    by ``min_gain`` of the mean with it, as it had to fall when it joined. Two laws can take up one gap
+    in turn - a force growing with crush speed read first as rate hardening, then as damping - and the
+    first must not stay by its order alone (the diagnosis' rule, docs/decisions.md, section 43). A
+    dropped effect joins ``dropped`` and is not tried again; each check is recorded in ``tried``.
+    Returns the effects, fits and inner errors kept."""
     for e in chosen[:-1]:
         rest = tuple(x for x in chosen if x != e)
         names = {p.name for p in parameters_to_fit(case, rest)}
