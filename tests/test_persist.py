@@ -95,12 +95,11 @@ def test_a_model_file_gives_back_every_fitted_value_and_the_same_predictions(cam
     loaded = load_model(model_file)
     assert isinstance(loaded.bias_["loading"], OnsetCorrectedBias)  # the partial, the pooled GP, two GMMs
     same(model, loaded)
-    # Bit for bit as the model after a pickle round trip: a model file, like a pickle, stores the
-    # surrogate's PCA components (a reversed-stride view in memory) as contiguous arrays, which
-    # moves a matrix product in the last bit against the model still in memory.
-    reference = pickle.loads(pickle.dumps(model))
+    # Bit for bit as the model still in memory, not only as its pickle: a strided array in the
+    # fitted model (once, the surrogate's PCA components) would take another BLAS path than its
+    # contiguous copy in the file, and `--jobs 1` (in memory) and `--jobs 2` (pickled) would differ.
     for test_id in ("T02", "T08"):
-        got, want = _at(loaded, campaign.pulses[test_id]), _at(reference, campaign.pulses[test_id])
+        got, want = _at(loaded, campaign.pulses[test_id]), _at(model, campaign.pulses[test_id])
         for name in ("decel", "decel_lo", "decel_hi", "velocity", "cae_decel"):
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
 
@@ -135,8 +134,7 @@ def test_a_surrogate_file_gives_back_the_same_curves(tmp_path, campaign, surroga
     loaded.check_campaign(campaign)
     p = campaign.pulses["T04"]
     got = loaded.curve(p.v0, p.front_weight, p.rear_weight, p.meta["powertrain"], p.meta["drive"])
-    want = pickle.loads(pickle.dumps(surrogate)).curve(p.v0, p.front_weight, p.rear_weight, p.meta["powertrain"],
-                                                       p.meta["drive"])
+    want = surrogate.curve(p.v0, p.front_weight, p.rear_weight, p.meta["powertrain"], p.meta["drive"])
     for name in ("a_loading", "a_unloading", "u", "s_max"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
 
