@@ -201,12 +201,12 @@ def test_the_workflow_logs_to_a_team_server_once(postgres, team_server, tmp_path
     workdir, client = tmp_path / "work", MlflowClient(tracking_uri=team_server)
     results, artifacts = workdir / config["results"], tmp_path / "artifacts"
 
-    snakemake(workdir, "--cores", "4", configfile=configfile)
+    snakemake(workdir, "--cores", "4", configfile=configfile, warm=True)
     first = _snapshot(client, results, artifacts, postgres)
     _check_runs(first, config, results)
     _check_artifacts(first, config, results)
 
-    again = snakemake(workdir, "--cores", "4", "--forcerun", "track", configfile=configfile)
+    again = snakemake(workdir, "--cores", "4", "--forcerun", "track", configfile=configfile, warm=True)
     n_models = len(config["predictions"]["models"])
     assert job_counts(again.stdout + again.stderr) == {"track": 1, "register": n_models, "all": 1}
     assert _snapshot(client, results, artifacts, postgres) == first

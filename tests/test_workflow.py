@@ -35,11 +35,15 @@ TEST_CONFIG = ROOT / "config" / "test.yaml"
 CONDA_LINT = "Specify a conda environment or container for each rule."
 
 
-def snakemake(workdir: Path, *args: str, configfile: Path = DEFAULT_CONFIG, check: bool = True):
-    """Run this repository's workflow in ``workdir``; returns the CompletedProcess (stdout + stderr)."""
+def snakemake(workdir: Path, *args: str, configfile: Path = DEFAULT_CONFIG, check: bool = True, warm: bool = False):
+    """Run this repository's workflow in ``workdir``; returns the CompletedProcess (stdout + stderr).
+    ``warm``: its jobs are children of one :mod:`crashfuse.forkserver`, as `crashfuse.reproduce` runs them;
+    a small run's jobs otherwise spend most of their CPU time importing the package."""
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(SNAKEFILE), "--directory", str(workdir),
            "--configfile", str(configfile), *args]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    with contextlib.ExitStack() as stack:
+        env = stack.enter_context(reproduce.forkserver_running(workdir / "forkserver.log")) if warm else None
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
     if check and done.returncode:
         raise AssertionError(f"snakemake {' '.join(args)} failed:\n{done.stdout}\n{done.stderr}")
     return done
