@@ -47,6 +47,12 @@ def model(campaign, surrogate):
     return fit_model(campaign, MethodConfig(k=1, inputs="paper", **FAST), surrogate=surrogate)
 
 
+@pytest.fixture(scope="module")
+def default_k1(campaign, surrogate, model):
+    """Each input mode's K1 model with its defaults, on every training test."""
+    return {"paper": model, "state": fit_model(campaign, MethodConfig(k=1, inputs="state", **FAST), surrogate=surrogate)}
+
+
 def _at(model, pulse, **kw):
     return predict(model, pulse.v0, pulse.front_weight, pulse.rear_weight, pulse.meta["powertrain"],
                    pulse.meta["drive"], duration=float(pulse.time[-1]), dt=pulse.dt, **kw)
@@ -402,8 +408,8 @@ def test_choose_k_scores_each_k_on_training_tests_only(campaign, surrogate, monk
 
 
 @pytest.mark.parametrize(("inputs", "trend"), [("paper", "constant"), ("state", "zero")])
-def test_each_input_mode_has_its_default_trend(campaign, surrogate, inputs, trend):
-    model = fit_model(campaign, MethodConfig(k=1, inputs=inputs, **FAST), surrogate=surrogate)
+def test_each_input_mode_has_its_default_trend(campaign, surrogate, default_k1, inputs, trend):
+    model = default_k1[inputs]
     assert model.config.trend == trend
     assert all(gp.trend == trend for est in model.bias_.values() if est is not None for gp in est.gps_)
     other = fit_model(campaign, MethodConfig(k=1, inputs=inputs, trend="linear", **FAST), surrogate=surrogate)
@@ -426,9 +432,9 @@ def test_each_input_mode_has_its_default_clusters(campaign, surrogate, inputs, p
 
 
 @pytest.mark.parametrize(("inputs", "on"), [("paper", False), ("state", True)])
-def test_each_input_mode_has_its_default_held_out_corrections(campaign, surrogate, inputs, on):
+def test_each_input_mode_has_its_default_held_out_corrections(campaign, surrogate, default_k1, inputs, on):
     """state: the loading branch's model shrinks its mean and corrects its held-out error over the time since contact."""
-    model = fit_model(campaign, MethodConfig(k=1, inputs=inputs, **FAST), surrogate=surrogate)
+    model = default_k1[inputs]
     assert model.config.onset is on and model.config.shrink is on
     assert isinstance(model.bias_["loading"], OnsetCorrectedBias) is on
     assert isinstance(model.bias_["unloading"], GMMGPBias)
