@@ -401,6 +401,41 @@ def test_a_law_at_its_upper_bound_is_flagged(case):
     assert Candidate("mass", 1, inside, np.ones(2), np.ones(2), _tie(2), []).at_upper_bound == []
 
 
+def test_a_law_at_its_limit_is_refitted_held_inside_it(case, monkeypatch):
+    """Whether a law needs more than is physical must not turn on where one fit stopped
+    (docs/decisions.md, section 52): a candidate whose evidence holds with a parameter at its limit
+    is refitted held at HELD_INSIDE of it and judged on that refit - accepted where the refit finds
+    an optimum inside, refused where it sits at the held bound again. The old rule refused both."""
+    params = ef.parameters_to_fit(case, ("damping",))
+    c_lim, n_lim = (p.upper for p in params)
+    at_limit = ef.FoldFits(("damping",), params, np.array([[1e3, 1.0], [1e3, n_lim]]), np.zeros(2))
+    better = judge(np.ones(11), np.full(11, 0.5), np.ones(11), np.ones(11), threshold=0.1)
+    base = diagnose_module._Base((), None, np.ones(11), None)
+    refits = []
+
+    def refit(case, effects, sets, start=None, listed_too=False, held=None):
+        refits.append(held)
+        held_params = ef.parameters_to_fit(case, effects, held)
+        assert [p.upper for p in held_params] == [c_lim, diagnose_module.HELD_INSIDE * n_lim]
+        return ef.FoldFits(effects, held_params, np.array([[1e3, n_refit]] * 2), np.zeros(2), held)
+
+    monkeypatch.setattr(diagnose_module, "fit_folds", refit)
+    monkeypatch.setattr(diagnose_module, "_judged", lambda case, fits, new, base, rule: (None, None, better))
+    for n_refit, accepted in ((2.1, True), (diagnose_module.HELD_INSIDE * n_lim, False)):
+        fits, _, _, ev = diagnose_module._judged_within_limits(case, [], at_limit, ("damping",), base, {})
+        c = _bounded(Candidate("damping", 1, fits, np.ones(11), np.ones(11), ev, []))
+        assert fits.held == {"damping.n": pytest.approx(diagnose_module.HELD_INSIDE * n_lim)}
+        assert c.evidence.accepted is accepted
+        there_again = "at a physical bound: damping.n (refitted held at 95% of it: there again)"
+        assert accepted or c.evidence.reason == there_again
+    assert len(refits) == 2
+    # Evidence that fails at the limit is not refitted: the refit could only fit worse.
+    fails = judge(np.ones(11), np.ones(11), np.zeros(11), np.ones(11), threshold=0.1)
+    monkeypatch.setattr(diagnose_module, "_judged", lambda case, fits, new, base, rule: (None, None, fails))
+    assert diagnose_module._judged_within_limits(case, [], at_limit, ("damping",), base, {})[0] is at_limit
+    assert len(refits) == 2
+
+
 def test_the_weak_end_of_the_search_box_is_not_a_physical_limit(case):
     """A large rate reference d means little hardening: a subtle rate effect may fit there (q inside)."""
     params = ef.parameters_to_fit(case, ("strain_rate",))

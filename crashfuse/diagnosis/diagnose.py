@@ -48,6 +48,7 @@ from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.units import G0, MPH, MS
 
 THRESHOLD = 0.10  # relative drop of the held-out mean squared error an effect must bring
+HELD_INSIDE = 0.95  # a parameter fitted at its physical limit is refitted held at this fraction of it
 RIGID_LINK_HZ = 100.0  # an extra mass whose link rings faster reads as rigid: a CFC 60 pulse (100 Hz) cannot tell
 
 
@@ -77,8 +78,14 @@ class Candidate:
     def at_upper_bound(self) -> list:
         """Own parameters at an upper bound that is a physical limit, in the all-tests fit: the law
         needed more than is physical."""
-        return [p.name for p, v in zip(self.fits.params, self.fits.theta[-1])
-                if p.name.startswith(self.effect + ".") and p.upper_is_limit and np.isclose(v, p.upper, rtol=1e-3)]
+        return _at_limit(self.fits, (self.effect,))
+
+
+def _at_limit(fits: FoldFits, effects) -> list:
+    """Parameters of ``effects`` whose all-tests fit in ``fits`` sits at an upper bound that is a
+    physical limit (or at the bound a refit held them to, :func:`_within_limits`)."""
+    return [p.name for p, v in zip(fits.params, fits.theta[-1])
+            if p.name.split(".")[0] in effects and p.upper_is_limit and np.isclose(v, p.upper, rtol=1e-3)]
 
 
 @dataclasses.dataclass
@@ -216,7 +223,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
                                              for e in remaining)
         singles = {}
         for e, fits in zip(remaining, round_fits):
-            pred, mse, ev = _judged(case, fits, (e,), base, rule)
+            fits, pred, mse, ev = _judged_within_limits(case, sets, fits, (e,), base, rule)
             singles[e] = _Base((*base.chosen, e), fits, mse, pred)
             candidates[e] = c = _bounded(Candidate(e, rnd, fits, mse, base.mse, ev, _acts_on(case, ev)))
             say(f"  round {rnd} +{e}: {_evidence_line(case, c)}")
@@ -306,11 +313,11 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
                                                            start=warm_start(case, base.fits, pair)) for pair in pairs)
     best, tried = ([], base), []
     for pair, fits in zip(pairs, pair_fits):
-        pred, mse, ev = _judged(case, fits, pair, base, rule)
+        fits, pred, mse, ev = _judged_within_limits(case, sets, fits, pair, base, rule)
         members = [Candidate(e, rnd, fits, mse, base.mse, ev, _acts_on(case, ev), partner=other)
                    for e, other in (pair, pair[::-1])]
-        bound = [p for c in members for p in c.at_upper_bound]
-        reason = ev.reason or (f"at a physical bound: {', '.join(bound)}" if bound else "")
+        bound = _at_limit(fits, pair)
+        reason = ev.reason or (_bound_reason(fits, bound) if bound else "")
         for e, other in (pair, pair[::-1]):
             if not reason:
                 alone = _alone(case, sets, fits, (*base.chosen, other), singles[other].fits)
@@ -341,6 +348,34 @@ def _alone(case: TestCase, sets, pair: FoldFits, effects, single: FoldFits | Non
     return _Base(tuple(effects), fits, mse, pred)
 
 
+def _judged_within_limits(case: TestCase, sets, fits: FoldFits, new, base: _Base, rule: dict):
+    """:func:`_judged`; where the evidence holds but a parameter of ``new`` sits at its physical limit,
+    the same for the refit that holds it a little inside (:func:`_within_limits`). Returns the fits
+    judged, the held-out prediction, its mean squared error and the :class:`Evidence`."""
+    pred, mse, ev = _judged(case, fits, new, base, rule)
+    bound = _at_limit(fits, new)
+    if ev.accepted and bound:
+        fits = _within_limits(case, sets, fits, bound)
+        pred, mse, ev = _judged(case, fits, new, base, rule)
+    return fits, pred, mse, ev
+
+
+def _within_limits(case: TestCase, sets, fits: FoldFits, bound) -> FoldFits:
+    """``fits`` refitted with each parameter of ``bound`` held at :data:`HELD_INSIDE` of its physical
+    limit, from ``fits``' values and the listed starts. Whether a law needs more than is physical
+    must not turn on where one fit stopped: with a second optimum inside the limits (a flat or
+    two-basin objective, where the last bits of the BLAS kernels chose the limit; docs/decisions.md,
+    section 52) the refit finds it; a law that needs more sits at the held bound again."""
+    held = {p.name: HELD_INSIDE * p.upper for p in fits.params if p.name in bound}
+    return fit_folds(case, fits.effects, sets, start=fits.theta, listed_too=True, held=held)
+
+
+def _bound_reason(fits: FoldFits, bound) -> str:
+    """Why a law at its physical limit is refused (``bound``: the parameter names)."""
+    held = " (refitted held at {:.0%} of it: there again)".format(HELD_INSIDE) if fits.held else ""
+    return f"at a physical bound: {', '.join(bound)}{held}"
+
+
 def _judged(case: TestCase, fits: FoldFits, new, base: _Base, rule: dict):
     """Held-out prediction, mean squared error and :class:`Evidence` of ``fits`` (``base``'s effects
     plus ``new``) against ``base``'s held-out errors and predictions."""
@@ -358,7 +393,8 @@ def _evidence_line(case: TestCase, c: Candidate) -> str:
     ev = c.evidence
     return (f"held-out rms {_rms_g(c.heldout_mse):.3f} g (x{c.ratio:.3f} MSE), acts on "
             f"{' '.join(c.acts_on) or 'no test'}{_sole_note(case, ev)}: better on {ev.wins}, worse on {ev.losses} "
-            f"(sign test p {ev.p_value:.3g}, permutation p {ev.permutation_p:.3g}, x{ev.affected_ratio:.3f} MSE there)")
+            f"(sign test p {ev.p_value:.3g}, permutation p {ev.permutation_p:.3g}, x{ev.affected_ratio:.3f} MSE there)"
+            + "".join(f"; refitted with {name} held at {upper:.4g}" for name, upper in c.fits.held.items()))
 
 
 def best_supported(candidates: dict, names) -> str | None:
@@ -376,7 +412,7 @@ def _bounded(c: Candidate) -> Candidate:
     """``c``, refused when one of its own parameters sits at an upper bound that is a physical limit:
     the law needed more than is physical (diagnosis.json says so, as for a pair)."""
     if c.evidence.accepted and c.at_upper_bound:
-        reason = f"at a physical bound: {', '.join(c.at_upper_bound)}"
+        reason = _bound_reason(c.fits, c.at_upper_bound)
         c.evidence = dataclasses.replace(c.evidence, accepted=False, reason=reason)
     return c
 
@@ -558,6 +594,7 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
                      "scatter_g": c.evidence.scatter / G0, "folds_beyond_scatter": int(c.evidence.material.sum()),
                      "affected_mse_ratio": c.evidence.affected_ratio, "accepted": c.evidence.accepted,
                      "refused_because": c.evidence.reason, "at_upper_bound": c.at_upper_bound,
+                     "held_upper": dict(c.fits.held),
                      "n_folds": int(c.heldout_mse.size), "heldout_rms_g": _rms_g(c.heldout_mse),
                      "reference_rms_g": _rms_g(c.reference_mse), "fitted_with": list(c.fits.effects),
                      "added_with": c.partner},

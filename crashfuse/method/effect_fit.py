@@ -150,23 +150,29 @@ class FoldFits:
         Best parameters (SI) per training set.
     cost : ndarray, shape (n_problems,)
         Mean squared training residual in (m/s^2)^2.
+    held : dict of str to float
+        Upper bounds (SI) that replaced the listed ones in this fit, by parameter name.
     """
 
     effects: tuple
     params: tuple
     theta: np.ndarray
     cost: np.ndarray
+    held: dict = dataclasses.field(default_factory=dict)
 
 
-def parameters_to_fit(case: TestCase, effects) -> tuple[Param, ...]:
+def parameters_to_fit(case: TestCase, effects, held: dict | None = None) -> tuple[Param, ...]:
     """The diagnosis laws' parameters of ``effects`` for this case, with their bounds and starting
-    points (powertrain: per label of the case's tests)."""
+    points (powertrain: per label of the case's tests); ``held``: upper bounds (SI) in place of the
+    listed ones, by parameter name."""
     hint = float(case.plant.mass.min())
-    return tuple(p for e in effects for p in parameters(e, case.plant.labels, hint))
+    held = held or {}
+    return tuple(dataclasses.replace(p, upper=held[p.name]) if p.name in held else p
+                 for e in effects for p in parameters(e, case.plant.labels, hint))
 
 
 def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = None,
-              listed_too: bool = False) -> FoldFits:
+              listed_too: bool = False, held: dict | None = None) -> FoldFits:
     """Fit ``effects`` on each training set (vectorised Levenberg-Marquardt, multi-start).
 
     Parameters
@@ -183,12 +189,14 @@ def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = No
         With ``start``, try every listed start as well and keep each set's best: a warm start
         carries the smaller set's compromise (a powertrain fitted without the rate hardening it
         absorbed) and can hold a fit in that basin.
+    held : dict of str to float, optional
+        Upper bounds (SI) in place of the listed ones, by parameter name.
 
     Returns
     -------
     FoldFits
     """
-    params = parameters_to_fit(case, effects)
+    params = parameters_to_fit(case, effects, held)
     if not params:
         return FoldFits(tuple(effects), (), np.empty((len(train_sets), 0)), _costs(case, train_sets))
     starts = _starts(params, len(train_sets), start, listed_too)
@@ -199,7 +207,7 @@ def fit_folds(case: TestCase, effects, train_sets, start: np.ndarray | None = No
     cost = cost.reshape(n_start, len(train_sets))
     best = np.argmin(cost, axis=0)
     z = z.reshape(n_start, len(train_sets), -1)[best, np.arange(len(train_sets))]
-    return FoldFits(tuple(effects), params, np.exp(z), cost[best, np.arange(len(train_sets))])
+    return FoldFits(tuple(effects), params, np.exp(z), cost[best, np.arange(len(train_sets))], dict(held or {}))
 
 
 def warm_start(case: TestCase, current: FoldFits, effects) -> np.ndarray | None:
