@@ -50,7 +50,8 @@ def model(campaign, surrogate):
 @pytest.fixture(scope="module")
 def default_k1(campaign, surrogate, model):
     """Each input mode's K1 model with its defaults, on every training test."""
-    return {"paper": model, "state": fit_model(campaign, MethodConfig(k=1, inputs="state", **FAST), surrogate=surrogate)}
+    state = fit_model(campaign, MethodConfig(k=1, inputs="state", **FAST), surrogate=surrogate)
+    return {"paper": model, "state": state}
 
 
 def _at(model, pulse, **kw):

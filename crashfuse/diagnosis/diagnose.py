@@ -372,7 +372,7 @@ def _within_limits(case: TestCase, sets, fits: FoldFits, bound) -> FoldFits:
 
 def _bound_reason(fits: FoldFits, bound) -> str:
     """Why a law at its physical limit is refused (``bound``: the parameter names)."""
-    held = " (refitted held at {:.0%} of it: there again)".format(HELD_INSIDE) if fits.held else ""
+    held = f" (refitted held at {HELD_INSIDE:.0%} of it: there again)" if fits.held else ""
     return f"at a physical bound: {', '.join(bound)}{held}"
 
 
