@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import json
 
 import numpy as np
@@ -18,7 +19,7 @@ from crashfuse.diagnosis import diagnose as diagnose_module
 from crashfuse.diagnosis.diagnose import Candidate, _bounded, diagnose, markdown, write_diagnosis
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, permutation_test, sign_test
 from crashfuse.signals.dynamics import State
-from crashfuse.method.laws import LINK_DAMPING_RATIO, _Link, decel_fn, headline, parameters
+from crashfuse.method.laws import LINK_DAMPING_RATIO, _link_force, decel_fn, headline, parameters
 from crashfuse.errors import InputError
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import fit_model
@@ -75,6 +76,29 @@ def test_laws_against_closed_forms(case):
     assert rate == pytest.approx(a_cae + a_rest * (v / 3000.0) ** 0.25, rel=1e-12)  # the static strength hardens
 
 
+@pytest.mark.parametrize("n_laws", [0, 1, 2, 5])
+def test_the_compiled_rollout_is_the_law_stepped_by_the_rollout_loop(case, n_laws):
+    """laws.simulate (compiled, one sample at a time) and dynamics.rollout of the law at each state give
+    the same numbers, bit for bit, for every set of laws: at the listed starts and across the bounds,
+    through unloading and separation."""
+    from crashfuse.method.laws import simulate
+    from crashfuse.signals.dynamics import rollout
+    rng = np.random.default_rng(n_laws)
+    separated = 0
+    for effects in itertools.combinations(EFFECTS, n_laws):
+        plant = case.plant.subset([0, 3, 7, 10, 7, 10])
+        theta = {p.name: np.exp(rng.uniform(np.log(p.lower), np.log(p.upper), 6))
+                 for p in ef.parameters_to_fit(case, effects)}
+        for p in ef.parameters_to_fit(case, effects):
+            theta[p.name][:2] = p.start  # the fits' two listed starts, then anywhere inside the bounds
+        fast = simulate(plant, effects, theta, ef.DT, case.n_steps)
+        loop = rollout(decel_fn(plant, effects, theta, ef.DT), plant.v0, ef.DT, case.n_steps)
+        for name in ("s", "v", "decel", "branch", "s_max"):
+            np.testing.assert_array_equal(getattr(fast, name), getattr(loop, name), err_msg=f"{effects} {name}")
+        separated += int((fast.branch == fast.SEPARATED).any(axis=1).sum())
+    assert separated > 0
+
+
 def test_the_mass_link_against_its_closed_form():
     """A constant force on a body carrying an extra mass on a damped spring: the relative travel is a
     damped oscillator's step response, ``mu z'' + c z' + k z = mu F / M``; the link force ``k z + c z'``
@@ -88,14 +112,24 @@ def test_the_mass_link_against_its_closed_form():
     decay = np.exp(-zeta * wn * t)
     z = z_s * (1.0 - decay * (np.cos(wd * t) + zeta * wn / wd * np.sin(wd * t)))
     zdot = z_s * decay * wn**2 / wd * np.sin(wd * t)
-    link = _Link(np.array([m]), np.array([k]), dt)
-    got = np.array([link.force(i, np.array([f]), np.array([body]))[0] for i in range(t.size)])
+    link = np.zeros(2)  # travel and speed relative to the body, from rest
+    got = np.array([_link_force(m, k, body, f, link, dt) for _ in t])
     np.testing.assert_allclose(got, k * z + c * zdot, atol=0.01 * mu * f / body)
-    rigid = _Link(np.array([m]), np.array([1e12]), 1.6e-4)
-    loads = [rigid.force(i, np.array([f]), np.array([body]))[0] for i in range(50)]
+    link = np.zeros(2)
+    loads = [_link_force(m, 1e12, body, f, link, 1.6e-4) for _ in range(50)]
     np.testing.assert_allclose((f - np.array(loads)) / body, f / (body + m), rtol=1e-3)
+
+
+def test_the_mass_link_is_stepped_in_order(case):
+    """The law at a state carries the link's state from step to step: a skipped step is an error, the
+    same step again repeats it."""
+    fn = decel_fn(case.plant.subset([7]), ("mass",), {"mass.extra": np.array([150.0]),
+                                                    "mass.k_link": np.array([1e6])}, ef.DT)
+    first, again = fn(_state(0.01, 15.0, step=0))[0], fn(_state(0.01, 15.0, step=0))[0]
+    assert again == first
+    fn(_state(0.012, 15.0, step=1))
     with pytest.raises(ValueError, match="in order"):
-        rigid.force(60, np.array([f]), np.array([body]))
+        fn(_state(0.02, 15.0, step=5))
 
 
 def test_a_mass_on_a_compliant_link_is_read_at_its_size(tmp_path):

@@ -65,11 +65,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import numba
 import numpy as np
 
 from crashfuse.catalogue import F_REF, V_REF, check_effect, key, quantity
 from crashfuse.signals.domain import displacement_branches
-from crashfuse.signals.dynamics import State, Trajectory, rollout
+from crashfuse.errors import InputError
+from crashfuse.signals.dynamics import State, Trajectory
 
 # Each parameter of the laws as the catalogue quantity it is (``powertrain.mass`` and
 # ``powertrain.gap`` stand for their per-label parameters ``powertrain.mass[label]``...).
@@ -220,14 +222,6 @@ class Plant:
         speed = dadv * v + dadv2 * v ** 2
         return np.maximum(rest + speed, 0.0), np.maximum(rest, 0.0)
 
-    def at_rest(self, s: np.ndarray) -> np.ndarray:
-        """CAE loading deceleration (m/s^2) at crush ``s`` (m) and zero crush speed, shape (n,), >= 0."""
-        return np.maximum(_take(self.load_table[0], self.row, *_cell(s / self.s_step, self.load_table.shape[2])), 0.0)
-
-    def unloading(self, u: np.ndarray) -> np.ndarray:
-        """CAE unloading deceleration (m/s^2) of every sample at its own ``u`` (m), shape (n,)."""
-        return _take(self.a_unload, self.row, *_cell(u / self.u_step, self.a_unload.shape[1]))
-
 
 def _reference(curve, faster, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Loading deceleration (m/s^2) and velocity (m/s) of the reference trajectory on ``s`` (m).
@@ -360,8 +354,25 @@ def _param(name: str, lower: float, upper: float, start: tuple, upper_is_limit: 
     return Param(name, unit, lower, upper, start, upper_is_limit)
 
 
-def decel_fn(plant: Plant, effects, theta: dict, dt: float):
-    """The rollout's deceleration function for CAE + ``effects`` (see the module docstring).
+# The compiled rollout reads the laws' parameters from one (n, len(COLUMNS)) matrix and their on/off
+# switches from one flag per law, in these orders (``powertrain.mass``/``gap``: the sample's label's).
+COLUMNS = ("strain_rate.d", "strain_rate.q", "unloading.k", "unloading.l0", "unloading.n", "damping.c", "damping.n",
+           "powertrain.mass", "powertrain.gap", "powertrain.f_mount", "powertrain.k_mount", "mass.extra", "mass.k_link")
+LAWS = ("strain_rate", "unloading", "damping", "powertrain", "mass")
+_UNLOADING, _SEPARATED = Trajectory.UNLOADING, Trajectory.SEPARATED  # branch codes, as constants compiled in
+# Compiled once and cached beside the module; a division by zero gives inf (then a non-finite deceleration
+# error), as numpy's arithmetic did, instead of raising inside the loop. The step's parts are inlined.
+_compiled = numba.njit(cache=True, error_model="numpy")
+_inlined = numba.njit(cache=True, error_model="numpy", inline="always")
+
+
+def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Trajectory:
+    """Roll out every row of ``plant`` with CAE + ``effects`` from its impact speed.
+
+    The scheme of :func:`crashfuse.signals.dynamics.rollout` (velocity Verlet, branch switching,
+    separation, the barrier's constraints), compiled for these laws and stepped one sample at a time:
+    the same numbers as ``rollout(decel_fn(...))`` at a fraction of the cost of a Python loop of small
+    array operations.
 
     Parameters
     ----------
@@ -371,113 +382,196 @@ def decel_fn(plant: Plant, effects, theta: dict, dt: float):
     theta : dict of str to ndarray, shape (n,)
         Every parameter of ``effects`` (names from :func:`parameters`) per sample, SI.
     dt : float
-        The rollout's step in s (the ``mass`` link is stepped with it).
-
-    Returns
-    -------
-    callable
-        ``State -> ndarray, shape (n,)`` deceleration in m/s^2 for :func:`crashfuse.signals.dynamics.rollout`,
-        called once per step in order (the ``mass`` link carries its state from step to step).
-    """
-    effects = set(effects)
-    pt = _powertrain_arrays(plant, theta) if "powertrain" in effects else None
-    link = _Link(theta["mass.extra"], theta["mass.k_link"], dt) if "mass" in effects else None
-    unl0 = np.maximum(plant.a_unload[plant.row, 0], 1e-9)
-
-    def unloading_force(st: State) -> np.ndarray:
-        f_max = plant.mass * plant.at_rest(st.s_max)  # static crush force at maximum crush (N)
-        if "unloading" in effects:
-            n = theta["unloading.n"]
-            return f_max * np.clip(1.0 - st.u / (n * decay_length(theta, f_max)), 0.0, 1.0) ** n
-        ratio = np.maximum(f_max / (plant.mass * unl0), 1e-6)
-        return f_max * plant.unloading(st.u / ratio) / unl0
-
-    def decel(st: State) -> np.ndarray:
-        load = st.loading
-        a_crush, a_rest = plant.loading(st.s, st.v)
-        force = plant.mass * a_crush
-        if "strain_rate" in effects:
-            rate = np.maximum(st.v, 0.0) / theta["strain_rate.d"]
-            force = force + plant.mass * a_rest * rate ** (1.0 / theta["strain_rate.q"])
-        if not load.all():  # most of a batched rollout's steps are loading only: no unloading lookups
-            force = np.where(load, force, unloading_force(st))
-        mass = plant.mass
-        if "damping" in effects:
-            force = force + damping_force(theta, st.v)
-        if pt is not None:
-            m_p, gap, f_y, k_m = pt
-            struck = st.s_max > gap
-            peak = np.minimum(f_y, k_m * np.maximum(st.s_max - gap, 0.0))
-            mount = np.where(load, peak, np.maximum(peak - k_m * st.u, 0.0))
-            force = force + np.where(struck, mount, 0.0)
-            mass = mass - np.where(struck, m_p, 0.0)
-        if link is not None:
-            force = force - link.force(st.step, force, mass)
-        return force / mass
-    return decel
-
-
-class _Link:
-    """The ``mass`` law's extra mass ``m`` on a link of stiffness ``k`` (N/m), stepped with the body.
-
-    State: the extra mass's travel ``z`` (m) and speed ``w`` (m/s) relative to the body, forward
-    positive, both 0 at contact. At each step the link force ``L = k z + c w`` is implicit: with
-    the body's deceleration ``a = (F - L) / M`` under the other forces ``F`` (N),
-    ``w1 = w0 + dt (F / M - L / mu)`` (``1 / mu = 1 / m + 1 / M``) and ``z1 = z0 + dt w1`` solve to
-    ``L = mu [z0 + g (w0 + dt F / M)] / [mu / k + g dt]``, ``g = dt + c / k``. As ``k`` grows
-    ``L -> mu F / M`` from rest: the rigid ``a = F / (M + m)``.
-    """
-
-    def __init__(self, m, k, dt):
-        self.m, self.k, self.dt = m, k, dt
-        self.g = dt + 2.0 * LINK_DAMPING_RATIO * np.sqrt(m / k)  # dt + c / k
-        self.step, self.prev, self.cur = -1, None, None
-
-    def force(self, step: int, f: np.ndarray, body: np.ndarray) -> np.ndarray:
-        """The link force on the body (N, forward; it lowers the deceleration) at ``step``, shape (n,)."""
-        if step == 0:
-            self.prev = (0.0, 0.0)
-        elif step == self.step + 1:
-            self.prev = self.cur
-        elif step != self.step:
-            raise ValueError(f"the mass link is stepped in order; got step {step} after {self.step}")
-        z0, w0 = self.prev
-        mu = self.m * body / (self.m + body)
-        drive = w0 + self.dt * f / body
-        pull = (z0 + self.g * drive) / (mu / self.k + self.g * self.dt)  # L / mu: finite for m = 0
-        w1 = drive - self.dt * pull
-        self.cur, self.step = (z0 + self.dt * w1, w1), step
-        return mu * pull
-
-
-def damping_force(params: dict, v):
-    """The ``damping`` law's force in N at crush speed ``v`` (m/s, negative on unloading):
-    ``c V_REF sign(v) |v / V_REF|^n``, ``c v`` for ``n = 1``."""
-    return params["damping.c"] * V_REF * np.sign(v) * np.abs(v / V_REF) ** params["damping.n"]
-
-
-def decay_length(params: dict, peak_force):
-    """The ``unloading`` law's initial decay length ``l0 + F_m / k`` in m after a peak force ``F_m`` (N):
-    the crush over which the force would reach zero at the rate it starts to fall."""
-    return params["unloading.l0"] + peak_force / params["unloading.k"]
-
-
-def _powertrain_arrays(plant: Plant, theta: dict):
-    """Per-sample powertrain mass, gap (by the sample's label), mount yield force and mount stiffness."""
-    m_p = np.choose(plant.group, [theta[f"powertrain.mass[{lab}]"] for lab in plant.labels])
-    gap = np.choose(plant.group, [theta[f"powertrain.gap[{lab}]"] for lab in plant.labels])
-    return m_p, gap, theta["powertrain.f_mount"], theta["powertrain.k_mount"]
-
-
-def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Trajectory:
-    """Roll out every row of ``plant`` with CAE + ``effects`` from its impact speed.
+        Step in s.
+    n_steps : int
 
     Returns
     -------
     crashfuse.signals.dynamics.Trajectory
         ``n`` samples, ``n_steps + 1`` times from contact, step ``dt`` (s).
+
+    Raises
+    ------
+    InputError
+        If the deceleration of a sample is not finite at some step.
     """
-    return rollout(decel_fn(plant, effects, theta, dt), plant.v0, dt, n_steps)
+    on, p = _law_inputs(plant, effects, theta)
+    s, v, a, branch, s_max, bad = _rollout(plant.load_table, plant.a_unload, plant.s_step, plant.u_step, plant.row,
+                                           plant.mass, np.asarray(plant.v0, float), on, p, float(dt), int(n_steps))
+    if bad >= 0:
+        raise InputError(f"the CAE + effects rollout gave a non-finite deceleration at step {bad}", field="theta")
+    return Trajectory(np.arange(int(n_steps) + 1) * dt, s, v, a, branch, s_max)
+
+
+def decel_fn(plant: Plant, effects, theta: dict, dt: float):
+    """The deceleration of CAE + ``effects`` at any state, for :func:`crashfuse.signals.dynamics.rollout`
+    (the law at chosen states; :func:`simulate` is the fast rollout of the same law).
+
+    Returns
+    -------
+    callable
+        ``State -> ndarray, shape (n,)`` deceleration in m/s^2, called once per step in order (the
+        ``mass`` link carries its state from step to step; the same step again repeats it).
+    """
+    on, p = _law_inputs(plant, effects, theta)
+    prev, cur = np.zeros((plant.row.size, 2)), np.zeros((plant.row.size, 2))
+    last = [-1]
+
+    def decel(st: State) -> np.ndarray:
+        if st.step == 0:
+            prev[:] = 0.0
+        elif st.step == last[0] + 1:
+            prev[:] = cur
+        elif st.step != last[0] and "mass" in effects:
+            raise ValueError(f"the mass link is stepped in order; got step {st.step} after {last[0]}")
+        last[0] = st.step
+        cur[:] = prev
+        return np.array([_decel_at(plant.load_table, plant.a_unload, plant.s_step, plant.u_step, plant.row[j],
+                                   plant.mass[j], on, p[j], st.s[j], st.v[j], st.u[j], st.s_max[j],
+                                   bool(st.loading[j]), cur[j], float(dt)) for j in range(plant.row.size)])
+    return decel
+
+
+def _law_inputs(plant: Plant, effects, theta: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The laws' switches (len(LAWS),) and per-sample parameter matrix (n, len(COLUMNS)) (0: law off)."""
+    effects = set(effects)
+    p = np.zeros((plant.row.size, len(COLUMNS)))
+    for j, name in enumerate(COLUMNS):
+        if name.split(".")[0] in effects and name in theta:
+            p[:, j] = theta[name]
+    if "powertrain" in effects:
+        for name in ("powertrain.mass", "powertrain.gap"):
+            p[:, COLUMNS.index(name)] = np.choose(plant.group, [theta[f"{name}[{lab}]"] for lab in plant.labels])
+    return np.array([law in effects for law in LAWS]), p
+
+
+@_compiled
+def _rollout(load, unload, s_step, u_step, row, mass, v0, on, p, dt, n_steps):
+    """:func:`crashfuse.signals.dynamics.rollout` of :func:`_decel_at`, one sample after another (every
+    sample's steps in turn: the faster order, tried against all samples at each step).
+
+    Returns s, v, decel, branch (n, n_steps + 1), s_max (n,) and the first step with a non-finite
+    deceleration (-1: none).
+    """
+    m, n = row.size, n_steps + 1
+    out_s, out_v, out_a = np.empty((m, n)), np.empty((m, n)), np.empty((m, n))
+    out_b, out_max = np.zeros((m, n), np.int8), np.empty(m)
+    link = np.zeros(2)
+    bad = -1
+    for j in range(m):
+        s, v, s_max, loading, separated = 0.0, v0[j], 0.0, True, False
+        link[:] = 0.0
+        pj = p[j]
+        a = _decel_at(load, unload, s_step, u_step, row[j], mass[j], on, pj, 0.0, v, 0.0, 0.0, True, link, dt)
+        if not np.isfinite(a):
+            bad = 0
+        out_s[j, 0], out_v[j, 0], out_a[j, 0] = s, v, a
+        for i in range(1, n):
+            s_new = s + (v * dt - a * (0.5 * dt * dt))
+            loading = loading and s_new > s_max  # it stops loading where the displacement does not advance
+            if loading:
+                s_max = s_new
+            a_new = _decel_at(load, unload, s_step, u_step, row[j], mass[j], on, pj, s_new, v - a * dt,
+                              max(s_max - s_new, 0.0), s_max, loading, link, dt)
+            if not np.isfinite(a_new) and (bad < 0 or i < bad):
+                bad = i
+            if not loading:  # the barrier cannot pull, and lets go for good
+                a_new = 0.0 if separated else max(a_new, 0.0)
+            v = v - (a + a_new) * (0.5 * dt)
+            s, a = s_new, a_new
+            out_s[j, i], out_v[j, i], out_a[j, i] = s, v, a
+            if not loading:
+                separated = separated or (a <= 0.0 and v < 0.0)
+                out_b[j, i] = _SEPARATED if separated else _UNLOADING
+        out_max[j] = s_max
+    return out_s, out_v, out_a, out_b, out_max, bad
+
+
+@_inlined
+def _decel_at(load, unload, s_step, u_step, r, mass, on, p, s, v, u, s_max, loading, link, dt):
+    """One sample's CAE + effects deceleration (m/s^2) at one state: the balance of the module docstring.
+
+    ``r``: the sample's table row; ``p``: its parameters (:data:`COLUMNS`); ``on``: the laws'
+    switches (:data:`LAWS`); ``link`` (2,): the extra mass's travel (m) and speed (m/s) relative to
+    the body after the previous step, advanced in place to this step's.
+    """
+    k, w = _at_cell(s / s_step, load.shape[2])
+    rest = load[0, r, k] * (1.0 - w) + load[0, r, k + 1] * w
+    speed = ((load[1, r, k] * (1.0 - w) + load[1, r, k + 1] * w) * v
+             + (load[2, r, k] * (1.0 - w) + load[2, r, k + 1] * w) * (v * v))
+    force = mass * max(rest + speed, 0.0)
+    if on[0]:  # strain_rate
+        force = force + mass * max(rest, 0.0) * (max(v, 0.0) / p[0]) ** (1.0 / p[1])
+    if not loading:
+        k, w = _at_cell(s_max / s_step, load.shape[2])
+        f_max = mass * max(load[0, r, k] * (1.0 - w) + load[0, r, k + 1] * w, 0.0)  # static force at maximum crush
+        if on[1]:  # unloading
+            force = f_max * min(max(1.0 - u / (p[4] * _decay_length(p[3], p[2], f_max)), 0.0), 1.0) ** p[4]
+        else:
+            unl0 = max(unload[r, 0], 1e-9)
+            k, w = _at_cell(u / max(f_max / (mass * unl0), 1e-6) / u_step, unload.shape[1])
+            force = f_max * (unload[r, k] * (1.0 - w) + unload[r, k + 1] * w) / unl0
+    body = mass
+    if on[2]:  # damping
+        force = force + _damping_force(p[5], p[6], v)
+    if on[3]:  # powertrain
+        struck = s_max > p[8]
+        peak = min(p[9], p[10] * max(s_max - p[8], 0.0))
+        force = force + ((peak if loading else max(peak - p[10] * u, 0.0)) if struck else 0.0)
+        body = body - (p[7] if struck else 0.0)
+    if on[4]:  # mass
+        force = force - _link_force(p[11], p[12], body, force, link, dt)
+    return force / body
+
+
+@_inlined
+def _link_force(m, k, body, f, link, dt):
+    """The ``mass`` law's link force on the body (N, forward; it lowers the deceleration) for an extra
+    mass ``m`` (kg) on a link of stiffness ``k`` (N/m), with the body of mass ``body`` under the other
+    forces ``f`` (N); ``link`` = (travel z, speed w) relative to the body, advanced in place.
+
+    The link force ``L = k z + c w`` is implicit: with the body's deceleration ``a = (F - L) / M``,
+    ``w1 = w0 + dt (F / M - L / mu)`` (``1 / mu = 1 / m + 1 / M``) and ``z1 = z0 + dt w1`` solve to
+    ``L = mu [z0 + g (w0 + dt F / M)] / [mu / k + g dt]``, ``g = dt + c / k``. As ``k`` grows
+    ``L -> mu F / M`` from rest: the rigid ``a = F / (M + m)``.
+    """
+    g = dt + 2.0 * LINK_DAMPING_RATIO * np.sqrt(m / k)  # dt + c / k
+    mu = m * body / (m + body)
+    drive = link[1] + dt * f / body
+    pull = (link[0] + g * drive) / (mu / k + g * dt)  # L / mu: finite for m = 0
+    w1 = drive - dt * pull
+    link[0], link[1] = link[0] + dt * w1, w1
+    return mu * pull
+
+
+@_inlined
+def _at_cell(pos, n):
+    """:func:`_cell` of one position."""
+    pos = min(max(pos, 0.0), n - 1.000001)
+    i = int(pos)
+    return i, pos - i
+
+
+@_inlined
+def _damping_force(c, n, v):
+    return c * V_REF * np.sign(v) * np.abs(v / V_REF) ** n
+
+
+@_inlined
+def _decay_length(l0, k, peak_force):
+    return l0 + peak_force / k
+
+
+def damping_force(params: dict, v):
+    """The ``damping`` law's force in N at crush speed ``v`` (m/s, negative on unloading):
+    ``c V_REF sign(v) |v / V_REF|^n``, ``c v`` for ``n = 1``."""
+    return _damping_force(params["damping.c"], params["damping.n"], v)
+
+
+def decay_length(params: dict, peak_force):
+    """The ``unloading`` law's initial decay length ``l0 + F_m / k`` in m after a peak force ``F_m`` (N):
+    the crush over which the force would reach zero at the rate it starts to fall."""
+    return _decay_length(params["unloading.l0"], params["unloading.k"], peak_force)
 
 
 def curve_plant(curves, masses, labels_of, s_hi: float, faster=None, force_rate=None) -> Plant:

@@ -20,6 +20,11 @@ When the deceleration also depends on the velocity (the ``state`` inputs), the s
 ``decel_fn`` carries the explicit prediction ``v_pred = v - a dt``: the scheme stays explicit and
 second order in ``s`` (the position update does not use the new deceleration), first order in
 the velocity fed to the model; for a deceleration independent of ``v`` it is exactly Verlet.
+
+This loop serves any deceleration function, one array operation per step for all samples. The
+effect laws' rollout (:func:`crashfuse.method.laws.simulate`), which the effect fits repeat
+thousands of times on small batches, runs the same scheme compiled, one sample at a time, with the
+same numbers (tests/test_diagnose.py checks them against this loop bit for bit).
 """
 
 from __future__ import annotations
