@@ -414,17 +414,18 @@ def decel_fn(plant: Plant, effects, theta: dict, dt: float):
         ``mass`` link carries its state from step to step; the same step again repeats it).
     """
     on, p = _law_inputs(plant, effects, theta)
-    prev, cur = np.zeros((plant.row.size, 2)), np.zeros((plant.row.size, 2))
-    last = [-1]
+    prev, cur = np.zeros((plant.row.size, 2)), np.zeros((plant.row.size, 2))  # the link's state per sample
+    last = -1
 
     def decel(st: State) -> np.ndarray:
+        nonlocal last
         if st.step == 0:
             prev[:] = 0.0
-        elif st.step == last[0] + 1:
+        elif st.step == last + 1:
             prev[:] = cur
-        elif st.step != last[0] and "mass" in effects:
-            raise ValueError(f"the mass link is stepped in order; got step {st.step} after {last[0]}")
-        last[0] = st.step
+        elif st.step != last and "mass" in effects:
+            raise ValueError(f"the mass link is stepped in order; got step {st.step} after {last}")
+        last = st.step
         cur[:] = prev
         return np.array([_decel_at(plant.load_table, plant.a_unload, plant.s_step, plant.u_step, plant.row[j],
                                    plant.mass[j], on, p[j], st.s[j], st.v[j], st.u[j], st.s_max[j],
