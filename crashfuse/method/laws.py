@@ -69,7 +69,7 @@ import numba
 import numpy as np
 
 from crashfuse.catalogue import F_REF, V_REF, check_effect, key, quantity
-from crashfuse.signals.domain import displacement_branches
+from crashfuse.signals.domain import displacement_branches, position_increment, velocity_decrement
 from crashfuse.errors import InputError
 from crashfuse.signals.dynamics import State, Trajectory
 
@@ -364,6 +364,7 @@ _UNLOADING, _SEPARATED = Trajectory.UNLOADING, Trajectory.SEPARATED  # branch co
 # error), as numpy's arithmetic did, instead of raising inside the loop. The step's parts are inlined.
 _compiled = numba.njit(cache=True, error_model="numpy")
 _inlined = numba.njit(cache=True, error_model="numpy", inline="always")
+_advance, _slowing = _inlined(position_increment), _inlined(velocity_decrement)  # the integrator's own formulas
 
 
 def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Trajectory:
@@ -414,6 +415,7 @@ def decel_fn(plant: Plant, effects, theta: dict, dt: float):
         ``mass`` link carries its state from step to step; the same step again repeats it).
     """
     on, p = _law_inputs(plant, effects, theta)
+    linked = on[LAWS.index("mass")]
     prev, cur = np.zeros((plant.row.size, 2)), np.zeros((plant.row.size, 2))  # the link's state per sample
     last = -1
 
@@ -423,7 +425,7 @@ def decel_fn(plant: Plant, effects, theta: dict, dt: float):
             prev[:] = 0.0
         elif st.step == last + 1:
             prev[:] = cur
-        elif st.step != last and "mass" in effects:
+        elif st.step != last and linked:
             raise ValueError(f"the mass link is stepped in order; got step {st.step} after {last}")
         last = st.step
         cur[:] = prev
@@ -438,11 +440,11 @@ def _law_inputs(plant: Plant, effects, theta: dict) -> tuple[np.ndarray, np.ndar
     effects = set(effects)
     p = np.zeros((plant.row.size, len(COLUMNS)))
     for j, name in enumerate(COLUMNS):
-        if name.split(".")[0] in effects and name in theta:
-            p[:, j] = theta[name]
-    if "powertrain" in effects:
-        for name in ("powertrain.mass", "powertrain.gap"):
-            p[:, COLUMNS.index(name)] = np.choose(plant.group, [theta[f"{name}[{lab}]"] for lab in plant.labels])
+        if name.split(".")[0] not in effects:
+            continue
+        per_label = name in ("powertrain.mass", "powertrain.gap")
+        p[:, j] = (np.choose(plant.group, [theta[f"{name}[{lab}]"] for lab in plant.labels]) if per_label
+                   else theta[name])
     return np.array([law in effects for law in LAWS]), p
 
 
@@ -468,7 +470,7 @@ def _rollout(load, unload, s_step, u_step, row, mass, v0, on, p, dt, n_steps):
             bad = 0
         out_s[j, 0], out_v[j, 0], out_a[j, 0] = s, v, a
         for i in range(1, n):
-            s_new = s + (v * dt - a * (0.5 * dt * dt))
+            s_new = s + _advance(v, a, dt)
             loading = loading and s_new > s_max  # it stops loading where the displacement does not advance
             if loading:
                 s_max = s_new
@@ -478,7 +480,7 @@ def _rollout(load, unload, s_step, u_step, row, mass, v0, on, p, dt, n_steps):
                 bad = i
             if not loading:  # the barrier cannot pull, and lets go for good
                 a_new = 0.0 if separated else max(a_new, 0.0)
-            v = v - (a + a_new) * (0.5 * dt)
+            v = v - _slowing(a, a_new, dt)
             s, a = s_new, a_new
             out_s[j, i], out_v[j, i], out_a[j, i] = s, v, a
             if not loading:

@@ -31,11 +31,13 @@ from crashfuse.errors import InputError
 from crashfuse.signals.pulse import Pulse
 
 
-def _position_increment(v, a_prev, dt):
+def position_increment(v, a_prev, dt):
+    """``v dt - a_prev dt^2 / 2`` (m): the displacement of one step (also compiled, crashfuse.method.laws)."""
     return v * dt - a_prev * (0.5 * dt * dt)
 
 
-def _velocity_decrement(a_prev, a_new, dt):
+def velocity_decrement(a_prev, a_new, dt):
+    """``(a_prev + a_new) dt / 2`` (m/s): the velocity lost in one step (also compiled, crashfuse.method.laws)."""
     return (a_prev + a_new) * (0.5 * dt)
 
 
@@ -55,7 +57,7 @@ def position_step(s, v, a_prev, dt: float):
     float or ndarray, shape (m,)
         Displacement in m at the next step.
     """
-    return s + _position_increment(v, a_prev, dt)
+    return s + position_increment(v, a_prev, dt)
 
 
 def velocity_step(v, a_prev, a_new, dt: float):
@@ -73,7 +75,7 @@ def velocity_step(v, a_prev, a_new, dt: float):
     float or ndarray, shape (m,)
         Velocity in m/s at the next step.
     """
-    return v - _velocity_decrement(a_prev, a_new, dt)
+    return v - velocity_decrement(a_prev, a_new, dt)
 
 
 def kinematics(decel, dt: float, v0) -> tuple[np.ndarray, np.ndarray]:
@@ -100,8 +102,8 @@ def kinematics(decel, dt: float, v0) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"expected at least one deceleration sample, got shape {a.shape}", field="decel")
     v0 = np.broadcast_to(np.asarray(v0, dtype=float)[..., None], a.shape[:-1] + (1,))
     # cumsum adds left to right, in the order the step functions do, so both agree bit for bit.
-    v = np.cumsum(np.concatenate([v0, -_velocity_decrement(a[..., :-1], a[..., 1:], dt)], axis=-1), axis=-1)
-    ds = _position_increment(v[..., :-1], a[..., :-1], dt)
+    v = np.cumsum(np.concatenate([v0, -velocity_decrement(a[..., :-1], a[..., 1:], dt)], axis=-1), axis=-1)
+    ds = position_increment(v[..., :-1], a[..., :-1], dt)
     s = np.cumsum(np.concatenate([np.zeros_like(v0), ds], axis=-1), axis=-1)
     return v, s
 
