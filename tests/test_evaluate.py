@@ -31,6 +31,8 @@ from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
 
+pytestmark = pytest.mark.xdist_group("evaluate")  # one worker builds the module's campaign and evaluation
+
 KEEP = ["T02", "T05", "T08"]
 FAST = dict(n_grid=40, n_restarts=0)
 

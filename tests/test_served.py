@@ -27,6 +27,8 @@ from crashfuse.world.generate import build  # noqa: E402
 from crashfuse.world.presets import resolve  # noqa: E402
 from servers import free_port, serving  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("served")  # one worker fits and registers the model for the module
+
 SAMPLES = 20
 INSIDE = {"name": "inside", "v0_mph": 25.0, "front_weight_lb": 2100.0, "rear_weight_lb": 1560.0,
           "powertrain": "Type I", "drive": "FWD"}
@@ -45,16 +47,20 @@ def files(tmp_path_factory):
     return root / "model.cfmodel", root / "surrogate.cfmodel", model
 
 
-@pytest.fixture()
-def registered(tmp_path, files, monkeypatch):
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+@pytest.fixture(scope="module")
+def registered(tmp_path_factory, files):
+    """The final model registered once in a store of its own; the tests only read it (registering it
+    again must change nothing)."""
+    root = tmp_path_factory.mktemp("registry")
+    uri = f"sqlite:///{root / 'mlflow.db'}"
     model_file, surrogate_file, _ = files
-    (tmp_path / "inside.png").write_bytes(b"png")
-    out = register_model(model_file, surrogate_file, "paper", inputs="state", model="K1",
-                         example=pd.DataFrame([INSIDE, BEYOND]), artifacts=[tmp_path / "inside.png"],
-                         tracking_uri=uri, n_samples=SAMPLES, random_state=3)
-    return uri, out
+    (root / "inside.png").write_bytes(b"png")
+    with pytest.MonkeyPatch.context() as env:
+        env.delenv("MLFLOW_TRACKING_URI", raising=False)
+        out = register_model(model_file, surrogate_file, "paper", inputs="state", model="K1",
+                             example=pd.DataFrame([INSIDE, BEYOND]), artifacts=[root / "inside.png"],
+                             tracking_uri=uri, n_samples=SAMPLES, random_state=3)
+        yield uri, out
 
 
 def _direct(model, condition):

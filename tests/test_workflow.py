@@ -169,6 +169,7 @@ def generated(tmp_path_factory):
     return workdir
 
 
+@pytest.mark.xdist_group("generated")  # one worker generates the campaign for all three
 def test_default_dag_has_the_method_steps_per_test_k_and_input_mode(generated):
     """Each fold is four jobs: train -> rollout -> score, and its figure; each test's auto model one more
     (its choice), then score and figure."""
@@ -184,6 +185,7 @@ def test_default_dag_has_the_method_steps_per_test_k_and_input_mode(generated):
     assert "campaign" not in counts
 
 
+@pytest.mark.xdist_group("generated")
 def test_selected_tests_and_no_tracking(generated, tmp_path):
     config = write_config(tmp_path / "c.yaml", tests=["T03", "T10"], ks=[2],
                           tracking={"enabled": False})
@@ -192,6 +194,7 @@ def test_selected_tests_and_no_tracking(generated, tmp_path):
     assert "track" not in counts
 
 
+@pytest.mark.xdist_group("generated")
 def test_config_naming_an_unknown_test_is_refused(generated, tmp_path):
     config = write_config(tmp_path / "c.yaml", tests=["T03", "T99"])
     done = snakemake(generated, "-n", configfile=config, check=False)
