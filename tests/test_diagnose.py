@@ -99,6 +99,28 @@ def test_the_compiled_rollout_is_the_law_stepped_by_the_rollout_loop(case, n_law
     assert separated > 0
 
 
+@pytest.mark.parametrize("n_laws", [1, 2, 5])
+def test_shifted_rollouts_are_the_rollouts_of_their_parameters(case, n_laws):
+    """laws.simulate_shifted (a Jacobian's columns, each following the unshifted rollout until its law
+    acts) gives each shifted parameter set's laws.simulate decelerations bit for bit: every parameter
+    moved alone, one of another powertrain label's (never acts), none moved, all down and all up."""
+    from crashfuse.method.laws import simulate, simulate_shifted
+    rng = np.random.default_rng(n_laws)
+    plant = case.plant.subset([0, 3, 7, 10, 7, 10])
+    assert len(set(plant.group)) > 1  # per-label parameters that act on some samples only
+    for effects in itertools.combinations(EFFECTS, n_laws):
+        params = ef.parameters_to_fit(case, effects)
+        theta = {p.name: np.exp(rng.uniform(np.log(p.lower), np.log(p.upper), 6)) for p in params}
+        for p in params:
+            theta[p.name][:2] = p.start
+        shifted = [{**theta, p.name: theta[p.name] * np.exp(ef.FD_STEP)} for p in params]
+        shifted += [dict(theta)] + [{name: value * f for name, value in theta.items()} for f in (0.99, 1.01)]
+        got = simulate_shifted(plant, effects, theta, shifted, ef.DT, case.n_steps)
+        for c, t in enumerate(shifted):
+            np.testing.assert_array_equal(got[:, c], simulate(plant, effects, t, ef.DT, case.n_steps).decel,
+                                          err_msg=f"{effects} variant {c}")
+
+
 def test_the_mass_link_against_its_closed_form():
     """A constant force on a body carrying an extra mass on a damped spring: the relative travel is a
     damped oscillator's step response, ``mu z'' + c z' + k z = mu F / M``; the link force ``k z + c z'``

@@ -18,7 +18,8 @@ import functools
 
 import numpy as np
 
-from crashfuse.method.laws import Plant, Param, crush_force_rate, curve_plant, parameters, simulate
+from crashfuse.method.laws import (Plant, Param, crush_force_rate, curve_plant, parameters, simulate,
+                                  simulate_shifted)
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign
 from crashfuse.method.projection import cae_curve
@@ -313,14 +314,26 @@ def _residuals(case, effects, params, sets, z, which):
 
 def _jacobian(case, effects, params, sets, z, which, res):
     """Forward-difference Jacobians (in log-parameters) of the sets in ``which`` (None elsewhere), whose
-    residuals at ``z`` are ``res``."""
+    residuals at ``z`` are ``res``: every column's rollouts in one :func:`simulate_shifted`."""
     d, n = z.shape[1], len(sets)
-    shifted = np.concatenate([z + FD_STEP * np.eye(d)[j] for j in range(d)])  # d blocks of len(sets)
-    moved = _residuals(case, effects, params, sets * d, shifted, np.concatenate([which + k * n for k in range(d)]))
     jac = [None] * n
-    for i in which:
-        jac[i] = np.stack([(moved[i + j * n] - res[i]) / FD_STEP for j in range(d)], axis=1)
+    if len(which) == 0:
+        return jac
+    rows, _, theta = _samples(params, sets, z, which)
+    shifted = np.concatenate([z + FD_STEP * np.eye(d)[j] for j in range(d)])  # d blocks of len(sets)
+    moved = _samples(params, sets * d, shifted, np.concatenate([which + k * n for k in range(d)]))[2]
+    decel = simulate_shifted(case.plant.subset(rows), effects, _named(params, theta),
+                             [_named(params, t) for t in moved.reshape(d, rows.size, d)], DT, case.n_steps)
+    diff = np.where(case.mask[rows][:, None], decel - case.target[rows][:, None], 0.0)  # (samples, d, n_t)
+    ends = np.cumsum([len(sets[i]) for i in which])  # each set's samples, one block after another
+    for i, block in zip(which, np.split(diff, ends[:-1])):
+        jac[i] = np.ascontiguousarray((block.transpose(1, 0, 2).reshape(d, -1).T - res[i][:, None]) / FD_STEP)
     return jac
+
+
+def _named(params, theta):
+    """Parameter arrays by name from a matrix (n, len(params)), SI."""
+    return {p.name: theta[:, j] for j, p in enumerate(params)}
 
 
 def _costs(case, train_sets):

@@ -359,6 +359,13 @@ def _param(name: str, lower: float, upper: float, start: tuple, upper_is_limit: 
 COLUMNS = ("strain_rate.d", "strain_rate.q", "unloading.k", "unloading.l0", "unloading.n", "damping.c", "damping.n",
            "powertrain.mass", "powertrain.gap", "powertrain.f_mount", "powertrain.k_mount", "mass.extra", "mass.k_link")
 LAWS = ("strain_rate", "unloading", "damping", "powertrain", "mass")
+# Where a law's parameters first reach a rollout (a rollout with other values is the same up to there):
+# from contact, once it unloads (the unloading law), once the crush closes the powertrain's gap (its arrest).
+_FROM_START, _FROM_UNLOADING, _FROM_STRIKE = 0, 1, 2
+ONSET = {"strain_rate": _FROM_START, "unloading": _FROM_UNLOADING, "damping": _FROM_START,
+         "powertrain": _FROM_STRIKE, "mass": _FROM_START}
+_COLUMN_ONSET = np.array([ONSET[name.split(".")[0]] for name in COLUMNS], np.int8)
+_GAP = COLUMNS.index("powertrain.gap")
 _UNLOADING, _SEPARATED = Trajectory.UNLOADING, Trajectory.SEPARATED  # branch codes, as constants compiled in
 # Compiled once and cached beside the module; a division by zero gives inf (then a non-finite deceleration
 # error), as numpy's arithmetic did, instead of raising inside the loop. The step's parts are inlined.
@@ -402,6 +409,40 @@ def simulate(plant: Plant, effects, theta: dict, dt: float, n_steps: int) -> Tra
     if bad >= 0:
         raise InputError(f"the CAE + effects rollout gave a non-finite deceleration at step {bad}", field="theta")
     return Trajectory(np.arange(int(n_steps) + 1) * dt, s, v, a, branch, s_max)
+
+
+def simulate_shifted(plant: Plant, effects, theta: dict, shifted, dt: float, n_steps: int) -> np.ndarray:
+    """The decelerations of :func:`simulate` with each of ``shifted``'s parameters in place of ``theta``
+    (a finite-difference Jacobian's columns), at a fraction of as many rollouts: a variant follows the
+    ``theta`` rollout, stepped alongside, until a law whose parameters it changes first acts
+    (:data:`ONSET`): a per-label powertrain parameter of another label never, one of the arrest once the
+    crush closes the gap, one of the unloading once the pulse unloads. The same numbers as
+    ``simulate(plant, effects, shifted[c], dt, n_steps).decel``.
+
+    Parameters
+    ----------
+    plant, effects, theta, dt, n_steps
+        As :func:`simulate`.
+    shifted : sequence of dict of str to ndarray, shape (n,)
+        ``k`` parameter sets like ``theta``.
+
+    Returns
+    -------
+    ndarray, shape (n, k, n_steps + 1)
+        Deceleration in m/s^2 of every sample under every parameter set.
+
+    Raises
+    ------
+    InputError
+        If the deceleration of a sample is not finite at some step.
+    """
+    on, p = _law_inputs(plant, effects, theta)
+    q = np.stack([_law_inputs(plant, effects, t)[1] for t in shifted], axis=1)
+    out, bad = _rollout_shifted(plant.load_table, plant.a_unload, plant.s_step, plant.u_step, plant.row, plant.mass,
+                                np.asarray(plant.v0, float), on, p, q, _COLUMN_ONSET, float(dt), int(n_steps))
+    if bad >= 0:
+        raise InputError(f"the CAE + effects rollout gave a non-finite deceleration at step {bad}", field="theta")
+    return out
 
 
 def decel_fn(plant: Plant, effects, theta: dict, dt: float):
@@ -464,30 +505,114 @@ def _rollout(load, unload, s_step, u_step, row, mass, v0, on, p, dt, n_steps):
     for j in range(m):
         s, v, s_max, loading, separated = 0.0, v0[j], 0.0, True, False
         link[:] = 0.0
-        pj = p[j]
-        a = _decel_at(load, unload, s_step, u_step, row[j], mass[j], on, pj, 0.0, v, 0.0, 0.0, True, link, dt)
+        a = _decel_at(load, unload, s_step, u_step, row[j], mass[j], on, p[j], 0.0, v, 0.0, 0.0, True, link, dt)
         if not np.isfinite(a):
             bad = 0
         out_s[j, 0], out_v[j, 0], out_a[j, 0] = s, v, a
         for i in range(1, n):
-            s_new = s + _advance(v, a, dt)
-            loading = loading and s_new > s_max  # it stops loading where the displacement does not advance
-            if loading:
-                s_max = s_new
-            a_new = _decel_at(load, unload, s_step, u_step, row[j], mass[j], on, pj, s_new, v - a * dt,
-                              max(s_max - s_new, 0.0), s_max, loading, link, dt)
-            if not np.isfinite(a_new) and (bad < 0 or i < bad):
+            s, v, a, s_max, loading, separated, finite = _step(load, unload, s_step, u_step, row[j], mass[j], on,
+                                                               p[j], s, v, a, s_max, loading, separated, link, dt)
+            if not finite and (bad < 0 or i < bad):
                 bad = i
-            if not loading:  # the barrier cannot pull, and lets go for good
-                a_new = 0.0 if separated else max(a_new, 0.0)
-            v = v - _slowing(a, a_new, dt)
-            s, a = s_new, a_new
             out_s[j, i], out_v[j, i], out_a[j, i] = s, v, a
             if not loading:
-                separated = separated or (a <= 0.0 and v < 0.0)
                 out_b[j, i] = _SEPARATED if separated else _UNLOADING
         out_max[j] = s_max
     return out_s, out_v, out_a, out_b, out_max, bad
+
+
+@_compiled
+def _rollout_shifted(load, unload, s_step, u_step, row, mass, v0, on, p, q, onset, dt, n_steps):
+    """The decelerations (n, k, n_steps + 1) of :func:`_rollout` with each sample's parameters ``p[j]``
+    replaced by each of ``q[j]`` (k, len(COLUMNS)), and the first step with a non-finite one (-1: none).
+
+    Each sample's ``p`` rollout is stepped alongside: a variant follows it until a law whose parameters
+    it changes first acts (:data:`ONSET`) and steps on its own from there, from the state that rollout
+    had; up to then every one of its operations is the ``p`` rollout's, so the numbers are the same.
+    """
+    m, k, n = q.shape[0], q.shape[1], n_steps + 1
+    out = np.empty((m, k, n))
+    link, var_link = np.zeros(2), np.zeros((k, 2))
+    var = np.zeros((k, 4))  # s, v, a, s_max of each variant on its own
+    var_flags = np.zeros((k, 2), np.bool_)  # loading, separated
+    own, waits = np.zeros(k, np.bool_), np.zeros((k, 2), np.bool_)  # stepping on its own; waiting to unload / strike
+    bad = -1
+    for j in range(m):
+        r, mj, pj = row[j], mass[j], p[j]
+        s, v, s_max, loading, separated = 0.0, v0[j], 0.0, True, False
+        link[:] = 0.0
+        a = _decel_at(load, unload, s_step, u_step, r, mj, on, pj, 0.0, v, 0.0, 0.0, True, link, dt)
+        if not np.isfinite(a):
+            bad = 0
+        for c in range(k):
+            own[c], waits[c, 0], waits[c, 1] = _onsets(pj, q[j, c], onset)
+            out[j, c, 0] = a
+            if own[c]:
+                var_link[c, :] = 0.0
+                var[c, 0], var[c, 1], var[c, 3], var_flags[c, 0], var_flags[c, 1] = 0.0, v, 0.0, True, False
+                var[c, 2] = out[j, c, 0] = _decel_at(load, unload, s_step, u_step, r, mj, on, q[j, c], 0.0, v, 0.0,
+                                                     0.0, True, var_link[c], dt)
+                if not np.isfinite(var[c, 2]):
+                    bad = 0
+        following = k - own.sum()
+        for i in range(1, n):
+            before = (s, v, a, s_max, loading, separated, link[0], link[1])
+            if following > 0:  # the p rollout only leads variants: not stepped once none follows it
+                s, v, a, s_max, loading, separated, finite = _step(load, unload, s_step, u_step, r, mj, on, pj, s, v,
+                                                                   a, s_max, loading, separated, link, dt)
+                if not finite and (bad < 0 or i < bad):
+                    bad = i
+            for c in range(k):
+                struck = s_max > min(pj[_GAP], q[j, c, _GAP])  # by either's powertrain
+                if not own[c] and ((waits[c, 0] and not loading) or (waits[c, 1] and struck)):
+                    own[c] = True  # leaves the p rollout at this step, from its state before it
+                    following -= 1
+                    var[c, 0], var[c, 1], var[c, 2], var[c, 3] = before[0], before[1], before[2], before[3]
+                    var_flags[c, 0], var_flags[c, 1] = before[4], before[5]
+                    var_link[c, 0], var_link[c, 1] = before[6], before[7]
+                if not own[c]:
+                    out[j, c, i] = a
+                    continue
+                (var[c, 0], var[c, 1], var[c, 2], var[c, 3], var_flags[c, 0], var_flags[c, 1],
+                 finite) = _step(load, unload, s_step, u_step, r, mj, on, q[j, c], var[c, 0], var[c, 1], var[c, 2],
+                                 var[c, 3], var_flags[c, 0], var_flags[c, 1], var_link[c], dt)
+                if not finite and (bad < 0 or i < bad):
+                    bad = i
+                out[j, c, i] = var[c, 2]
+    return out, bad
+
+
+@_inlined
+def _onsets(p, q, onset):
+    """Where parameters ``q`` first act differently from ``p`` (one sample's, :data:`COLUMNS`): from the
+    start, and whether once it unloads, or once the powertrain strikes (False, False, False: never)."""
+    start = unloads = strikes = False
+    for col in range(p.size):
+        if q[col] != p[col]:
+            start = start or onset[col] == _FROM_START
+            unloads = unloads or onset[col] == _FROM_UNLOADING
+            strikes = strikes or onset[col] == _FROM_STRIKE
+    return start, unloads, strikes
+
+
+@_inlined
+def _step(load, unload, s_step, u_step, r, mass, on, p, s, v, a, s_max, loading, separated, link, dt):
+    """One step of :func:`_rollout` from ``s, v, a, s_max, loading, separated`` (``link`` advanced in
+    place): the same six after it, and whether the deceleration was finite before the barrier's
+    constraints."""
+    s_new = s + _advance(v, a, dt)
+    loading = loading and s_new > s_max  # it stops loading where the displacement does not advance
+    if loading:
+        s_max = s_new
+    a_new = _decel_at(load, unload, s_step, u_step, r, mass, on, p, s_new, v - a * dt,
+                      max(s_max - s_new, 0.0), s_max, loading, link, dt)
+    finite = np.isfinite(a_new)
+    if not loading:  # the barrier cannot pull, and lets go for good
+        a_new = 0.0 if separated else max(a_new, 0.0)
+    v = v - _slowing(a, a_new, dt)
+    if not loading:
+        separated = separated or (a_new <= 0.0 and v < 0.0)
+    return s_new, v, a_new, s_max, loading, separated, finite
 
 
 @_inlined
