@@ -1,6 +1,7 @@
 """The hybrid's effect fits: one fold's `auto` effect choice; the batched CAE + effects rollout it
-repeats, against each sample holding its own copy of its CAE tables (the baseline ratio); and that
-rollout's cost over batch sizes (``--sizes``), split into a part per rollout and a part per sample.
+repeats, against each sample holding its own copy of its CAE tables (the baseline ratio); that
+rollout's cost over batch sizes (``--sizes``), split into a part per rollout and a part per sample;
+and a Jacobian's columns following the unshifted rollout, against a rollout per column.
 
     .venv/bin/python benchmarks/bench_effect_fit.py [CAMPAIGN] [--holdout T05] [--samples 1100]
                                                     [--candidates E ...] [--sizes N ...]
@@ -81,12 +82,21 @@ def main(argv=None) -> int:
     same = np.array_equal(roll(shared, theta).decel, roll(own, theta).decel)
     t_shared, t_own = (_best(lambda p=p: roll(p, theta)) for p in (shared, own))
     scan = {n: _best(lambda b=batch(n): roll(*b)) for n in args.sizes}
+    shifted = [{**theta, p.name: theta[p.name] * np.exp(effect_fit.FD_STEP)} for p in params]  # a Jacobian's
+    followed = laws.simulate_shifted(shared, ROLLOUT_EFFECTS, theta, shifted, DT, case.n_steps)
+    same_columns = all(np.array_equal(followed[:, c], roll(shared, t).decel) for c, t in enumerate(shifted))
+    t_columns = _best(lambda: [roll(shared, t) for t in shifted])
+    t_followed = _best(lambda: laws.simulate_shifted(shared, ROLLOUT_EFFECTS, theta, shifted, DT, case.n_steps))
 
-    calls = []
+    calls, columns = [], []
     counted = mock.patch.object(effect_fit, "simulate", side_effect=lambda plant, *a: calls.append(plant.row.size)
                                 or laws.simulate(plant, *a))
+    counted_columns = mock.patch.object(
+        effect_fit, "simulate_shifted",
+        side_effect=lambda plant, e, t, s, *a: columns.append(plant.row.size * len(s)) or laws.simulate_shifted(
+            plant, e, t, s, *a))
     t0, c0 = time.perf_counter(), time.process_time()
-    with counted:
+    with counted, counted_columns:
         fit = fit_physics(campaign, train, "auto", surrogate, candidates=tuple(args.candidates))
     t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
 
@@ -97,10 +107,14 @@ def main(argv=None) -> int:
     per_sample, fixed = np.polyfit(list(scan), list(scan.values()), 1) if len(scan) > 1 else (np.nan, np.nan)
     print("  by batch size: " + ", ".join(f"{n} samples {t:.3f} s" for n, t in scan.items())
           + f" -> about {fixed:.3f} s per rollout + {1e3 * per_sample:.3f} ms per sample")
+    print(f"  a Jacobian's {len(shifted)} finite-difference columns: a rollout each {t_columns:.3f} s; following "
+          f"the unshifted rollout until their law acts {t_followed:.3f} s -> {t_columns / t_followed:.2f}x; "
+          f"identical: {same_columns}")
     print(f"one fold's `auto` effect choice (without {args.holdout}, {len(train)} tests): {t_fit:.1f} s wall, "
           f"{c_fit:.1f} s CPU; chose {'+'.join(fit.effects) or 'none'}")
     print(f"  {len(calls)} batched rollouts, {np.mean(calls):.0f} samples each on average "
-          f"({sum(calls) * (case.n_steps + 1) / 1e6:.0f} M sample-steps)")
+          f"({sum(calls) * (case.n_steps + 1) / 1e6:.0f} M sample-steps), and {len(columns)} Jacobians of "
+          f"{np.mean(columns):.0f} samples x columns each on average")
     return 0
 
 

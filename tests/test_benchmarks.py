@@ -69,6 +69,7 @@ def test_bench_effect_fit_runs_on_a_tiny_campaign(tiny_campaign, capsys):
     _script("bench_effect_fit").main([str(tiny_campaign), "--holdout", "T05", "--samples", "30",
                                       "--candidates", "mass", "--sizes", "4", "8"])
     out = capsys.readouterr().out
-    assert "identical: True" in out  # samples sharing their condition's tables roll out the same pulses
+    assert out.count("identical: True") == 2  # shared tables, and a Jacobian's columns following the rollout
     assert "4 samples" in out and "8 samples" in out and "per rollout +" in out
     assert "one fold's `auto` effect choice (without T05, 2 tests)" in out and "batched rollouts" in out
+    assert "Jacobians of" in out
