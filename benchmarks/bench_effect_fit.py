@@ -45,6 +45,13 @@ def _own_tables(plant: laws.Plant) -> laws.Plant:
                                a_unload=plant.a_unload[plant.row], row=np.arange(plant.row.size))
 
 
+def _counted(name: str, record: list, size):
+    """effect_fit's ``name`` (a laws function it imports) patched to append ``size(*args)`` of every call
+    to ``record``."""
+    real = getattr(laws, name)
+    return mock.patch.object(effect_fit, name, side_effect=lambda *a: record.append(size(*a)) or real(*a))
+
+
 def _best(fn, repeat=3) -> float:
     times = []
     for _ in range(repeat):
@@ -89,12 +96,9 @@ def main(argv=None) -> int:
     t_followed = _best(lambda: laws.simulate_shifted(shared, ROLLOUT_EFFECTS, theta, shifted, DT, case.n_steps))
 
     calls, columns = [], []
-    counted = mock.patch.object(effect_fit, "simulate", side_effect=lambda plant, *a: calls.append(plant.row.size)
-                                or laws.simulate(plant, *a))
-    counted_columns = mock.patch.object(
-        effect_fit, "simulate_shifted",
-        side_effect=lambda plant, e, t, s, *a: columns.append(plant.row.size * len(s)) or laws.simulate_shifted(
-            plant, e, t, s, *a))
+    counted = _counted("simulate", calls, lambda plant, *a: plant.row.size)
+    counted_columns = _counted("simulate_shifted", columns, lambda plant, effects, theta, shifted, *a:
+                               plant.row.size * len(shifted))
     t0, c0 = time.perf_counter(), time.process_time()
     with counted, counted_columns:
         fit = fit_physics(campaign, train, "auto", surrogate, candidates=tuple(args.candidates))
