@@ -296,7 +296,7 @@ def _samples(params, sets, z, which):
 
 def _run(case, effects, params, rows, theta):
     plant = case.plant.subset(rows)
-    traj = simulate(plant, effects, {p.name: theta[:, j] for j, p in enumerate(params)}, DT, case.n_steps)
+    traj = simulate(plant, effects, _named(params, theta), DT, case.n_steps)
     return np.where(case.mask[rows], traj.decel - case.target[rows], 0.0)
 
 
@@ -358,7 +358,7 @@ def predict(case: TestCase, fits: FoldFits, problem_rows, test_rows):
     test_rows = np.asarray(test_rows, int)
     theta = fits.theta[np.asarray(problem_rows, int)]
     plant = case.plant.subset(test_rows)
-    traj = simulate(plant, fits.effects, {p.name: theta[:, j] for j, p in enumerate(fits.params)}, DT, case.n_steps)
+    traj = simulate(plant, fits.effects, _named(fits.params, theta), DT, case.n_steps)
     m = case.mask[test_rows]
     diff = np.where(m, traj.decel - case.target[test_rows], 0.0)
     return traj.decel, (diff ** 2).sum(axis=1) / m.sum(axis=1)

@@ -506,14 +506,12 @@ def _rollout(load, unload, s_step, u_step, row, mass, v0, on, p, dt, n_steps):
         s, v, s_max, loading, separated = 0.0, v0[j], 0.0, True, False
         link[:] = 0.0
         a = _decel_at(load, unload, s_step, u_step, row[j], mass[j], on, p[j], 0.0, v, 0.0, 0.0, True, link, dt)
-        if not np.isfinite(a):
-            bad = 0
+        bad = _earliest(bad, 0, np.isfinite(a))
         out_s[j, 0], out_v[j, 0], out_a[j, 0] = s, v, a
         for i in range(1, n):
             s, v, a, s_max, loading, separated, finite = _step(load, unload, s_step, u_step, row[j], mass[j], on,
                                                                p[j], s, v, a, s_max, loading, separated, link, dt)
-            if not finite and (bad < 0 or i < bad):
-                bad = i
+            bad = _earliest(bad, i, finite)
             out_s[j, i], out_v[j, i], out_a[j, i] = s, v, a
             if not loading:
                 out_b[j, i] = _SEPARATED if separated else _UNLOADING
@@ -542,8 +540,7 @@ def _rollout_shifted(load, unload, s_step, u_step, row, mass, v0, on, p, q, onse
         s, v, s_max, loading, separated = 0.0, v0[j], 0.0, True, False
         link[:] = 0.0
         a = _decel_at(load, unload, s_step, u_step, r, mj, on, pj, 0.0, v, 0.0, 0.0, True, link, dt)
-        if not np.isfinite(a):
-            bad = 0
+        bad = _earliest(bad, 0, np.isfinite(a))
         for c in range(k):
             own[c], waits[c, 0], waits[c, 1] = _onsets(pj, q[j, c], onset)
             out[j, c, 0] = a
@@ -552,34 +549,37 @@ def _rollout_shifted(load, unload, s_step, u_step, row, mass, v0, on, p, q, onse
                 var[c, 0], var[c, 1], var[c, 3], var_flags[c, 0], var_flags[c, 1] = 0.0, v, 0.0, True, False
                 var[c, 2] = out[j, c, 0] = _decel_at(load, unload, s_step, u_step, r, mj, on, q[j, c], 0.0, v, 0.0,
                                                      0.0, True, var_link[c], dt)
-                if not np.isfinite(var[c, 2]):
-                    bad = 0
+                bad = _earliest(bad, 0, np.isfinite(var[c, 2]))
         following = k - own.sum()
         for i in range(1, n):
             before = (s, v, a, s_max, loading, separated, link[0], link[1])
             if following > 0:  # the p rollout only leads variants: not stepped once none follows it
                 s, v, a, s_max, loading, separated, finite = _step(load, unload, s_step, u_step, r, mj, on, pj, s, v,
                                                                    a, s_max, loading, separated, link, dt)
-                if not finite and (bad < 0 or i < bad):
-                    bad = i
+                bad = _earliest(bad, i, finite)
             for c in range(k):
-                struck = s_max > min(pj[_GAP], q[j, c, _GAP])  # by either's powertrain
-                if not own[c] and ((waits[c, 0] and not loading) or (waits[c, 1] and struck)):
+                if not own[c]:
+                    struck = waits[c, 1] and s_max > min(pj[_GAP], q[j, c, _GAP])  # by either's powertrain
+                    if not (struck or (waits[c, 0] and not loading)):
+                        out[j, c, i] = a
+                        continue
                     own[c] = True  # leaves the p rollout at this step, from its state before it
                     following -= 1
                     var[c, 0], var[c, 1], var[c, 2], var[c, 3] = before[0], before[1], before[2], before[3]
                     var_flags[c, 0], var_flags[c, 1] = before[4], before[5]
                     var_link[c, 0], var_link[c, 1] = before[6], before[7]
-                if not own[c]:
-                    out[j, c, i] = a
-                    continue
                 (var[c, 0], var[c, 1], var[c, 2], var[c, 3], var_flags[c, 0], var_flags[c, 1],
                  finite) = _step(load, unload, s_step, u_step, r, mj, on, q[j, c], var[c, 0], var[c, 1], var[c, 2],
                                  var[c, 3], var_flags[c, 0], var_flags[c, 1], var_link[c], dt)
-                if not finite and (bad < 0 or i < bad):
-                    bad = i
+                bad = _earliest(bad, i, finite)
                 out[j, c, i] = var[c, 2]
     return out, bad
+
+
+@_inlined
+def _earliest(bad, i, finite):
+    """The first step with a non-finite deceleration so far (-1: none), given step ``i``'s."""
+    return i if not finite and (bad < 0 or i < bad) else bad
 
 
 @_inlined
