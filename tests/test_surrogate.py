@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import platform
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -156,6 +160,19 @@ def test_the_fit_runs_on_one_blas_thread_whatever_the_caller_set(world, monkeypa
         CAESurrogate(n_components=4, n_unload_components=3, random_state=0).fit(
             [world.pulses[r] for r in world.cae[:60]])
     assert seen and all(n == [1] * len(n) for n in seen)
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 OpenBLAS kernel names")
+def test_the_blas_kernels_are_named_as_blas_runs_them():
+    """One thread fixes the summation order on one processor, not across processors: validation tables
+    and diagnoses record the kernels they ran on (docs/decisions.md, section 56)."""
+    import numpy, scipy.linalg  # noqa: F401 - load both BLAS libraries
+    from crashfuse.gp.threads import blas_kernels
+    assert "numpy: openblas" in blas_kernels()
+    code = "import numpy, scipy.linalg; from crashfuse.gp.threads import blas_kernels; print(blas_kernels())"
+    named = subprocess.run([sys.executable, "-c", code], env={**os.environ, "OPENBLAS_CORETYPE": "Nehalem"},
+                           capture_output=True, text=True, check=True).stdout
+    assert named.count(" Nehalem") == named.count("openblas") >= 1  # SSE4.2: on every x86-64 of the last 15 years
 
 
 def test_the_surrogate_records_and_checks_its_campaign(world, fitted):

@@ -31,7 +31,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect
-from crashfuse.gp.threads import one_blas_thread
+from crashfuse.gp.threads import blas_kernels, one_blas_thread
 from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
                                          test_case, warm_start)
 from crashfuse.method.laws import damping_force, decay_length, headline
@@ -120,7 +120,7 @@ class Diagnosis:
         }
 
 
-@one_blas_thread  # the effect fits' normal equations: the same bits on any machine
+@one_blas_thread  # the effect fits' normal equations: the same bits on any thread count
 def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, alpha: float = ALPHA,
              move: float = MOVE, k: int = 1, inputs: str = "state", n_samples: int = 200, random_state: int = 0,
              surrogate: CAESurrogate | None = None, in_sample: bool = False, residual_model: bool = True,
@@ -189,7 +189,8 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     residual = _residual_config(k, inputs, random_state, fold_models) if holdout and residual_model else None
     shrink = _shrink(campaign, case, preds, current, residual, fold_models, n_samples, surrogate, n_jobs, say)
     settings = dict(effects=list(effects), threshold=threshold, alpha=alpha, move=move, k=k, inputs=inputs,
-                    n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware)
+                    n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware,
+                    blas=blas_kernels())
     gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
     return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap,
                      pairs, float(fx_mse.sum() / cae_mse.sum()))
@@ -713,6 +714,7 @@ def markdown(js: dict) -> str:
         lines.append(f"| {model} | " + " | ".join(f"{row[w]:.3f}" if w in row else "" for w in WINDOWS) + " |")
     if js["regions"]:
         lines += ["", *_regions_markdown(js["regions"])]
+    lines += ["", f"Computed with BLAS {js['settings']['blas']} (docs/decisions.md, section 56)."]
     return "\n".join(lines) + "\n"
 
 

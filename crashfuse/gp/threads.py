@@ -2,16 +2,19 @@
 
 Every fit runs on one BLAS thread by default: small matrices are faster that way, and a
 threaded matrix product sums in an order that depends on the thread count, so one thread
-also makes results identical on any machine.
+also makes results independent of the thread settings. Not of the processor: BLAS picks its
+kernels by instruction set, and other kernels sum in another order (docs/decisions.md, section
+56) - :func:`blas_kernels` names them, and every validation table and diagnosis records it.
 """
 
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 from threadpoolctl import ThreadpoolController
 
-__all__ = ["blas_threads", "one_blas_thread", "limit_blas", "controller"]
+__all__ = ["blas_threads", "one_blas_thread", "limit_blas", "controller", "blas_kernels"]
 
 
 @functools.cache
@@ -23,8 +26,8 @@ def controller():
 def blas_threads(n):
     """Context manager running BLAS on ``n`` threads (None: unchanged).
 
-    One thread also makes results independent of the machine: a threaded matrix product sums
-    in an order that depends on the thread count, and a last-bit change can move an optimiser
+    One thread also makes results independent of the thread settings: a threaded matrix product
+    sums in an order that depends on the thread count, and a last-bit change can move an optimiser
     to another local optimum (a ``paper`` K3 fold's ISO moves by 0.008; docs/decisions.md, section 12).
     """
     return controller().limit(limits=n, user_api="blas")
@@ -46,3 +49,13 @@ def limit_blas(method):
         with blas_threads(self.blas_threads):
             return method(self, *args, **kwargs)
     return wrapper
+
+
+def blas_kernels() -> str:
+    """The BLAS libraries loaded here with their kernels, e.g. ``numpy: openblas 0.3.31 SkylakeX;
+    scipy: openblas 0.3.30 SkylakeX``: other kernels (another processor, or ``OPENBLAS_CORETYPE``)
+    can end a fit in another local optimum of the same problem (docs/decisions.md, section 56)."""
+    libs = sorted({f"{Path(lib['filepath']).parent.name.removesuffix('.libs')}: {lib['internal_api']} "
+                   f"{lib.get('version') or '?'} {lib.get('architecture') or '?'}"
+                   for lib in ThreadpoolController().info() if lib["user_api"] == "blas"})  # those loaded now
+    return "; ".join(libs) or "none loaded"

@@ -246,7 +246,7 @@ class CAESurrogate(BaseEstimator):
         self.max_fit_points = max_fit_points
         self.random_state = random_state
 
-    @one_blas_thread  # the imputation's products: the same bits on any machine
+    @one_blas_thread  # the imputation's products: the same bits on any thread count
     def fit(self, runs: Campaign | Iterable[Pulse]) -> "CAESurrogate":
         """Learn the surrogate from CAE runs.
 
