@@ -17,8 +17,8 @@ from crashfuse.method import effect_fit as ef
 from crashfuse.cli import main
 from crashfuse.diagnosis import diagnose as diagnose_module
 from crashfuse.diagnosis.diagnose import Candidate, _bounded, diagnose, markdown, write_diagnosis
-from crashfuse.gp.threads import blas_kernels
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, permutation_test, sign_test
+from crashfuse.gp.threads import blas_kernels
 from crashfuse.signals.dynamics import State
 from crashfuse.method.laws import LINK_DAMPING_RATIO, _link_force, decel_fn, headline, parameters
 from crashfuse.errors import InputError

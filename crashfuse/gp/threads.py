@@ -52,10 +52,11 @@ def limit_blas(method):
 
 
 def blas_kernels() -> str:
-    """The BLAS libraries loaded here with their kernels, e.g. ``numpy: openblas 0.3.31 SkylakeX;
+    """numpy's and scipy's BLAS libraries with their kernels, e.g. ``numpy: openblas 0.3.31 SkylakeX;
     scipy: openblas 0.3.30 SkylakeX``: other kernels (another processor, or ``OPENBLAS_CORETYPE``)
     can end a fit in another local optimum of the same problem (docs/decisions.md, section 56)."""
+    import scipy.linalg  # noqa: F401 - loads scipy's BLAS (the fits use it) wherever this is asked first
     libs = sorted({f"{Path(lib['filepath']).parent.name.removesuffix('.libs')}: {lib['internal_api']} "
                    f"{lib.get('version') or '?'} {lib.get('architecture') or '?'}"
-                   for lib in ThreadpoolController().info() if lib["user_api"] == "blas"})  # those loaded now
+                   for lib in ThreadpoolController().info() if lib["user_api"] == "blas"})
     return "; ".join(libs) or "none loaded"
