@@ -18,7 +18,7 @@ from crashfuse.cli import main
 from crashfuse.diagnosis import diagnose as diagnose_module
 from crashfuse.diagnosis.diagnose import Candidate, _bounded, diagnose, markdown, write_diagnosis
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, permutation_test, sign_test
-from crashfuse.gp.threads import blas_kernels
+from crashfuse.gp.threads import cpu_kernels
 from crashfuse.signals.dynamics import State
 from crashfuse.method.laws import LINK_DAMPING_RATIO, _link_force, decel_fn, headline, parameters
 from crashfuse.errors import InputError
@@ -310,7 +310,7 @@ def test_diagnosis_files(damping_world, tmp_path):
     assert evidence["accepted"] and len(evidence["acts_on"]) >= 4 and set(evidence["acts_on"]) <= set(campaign.tests)
     assert evidence["folds_better"] + evidence["folds_worse"] == len(evidence["acts_on"]) - len(evidence["not_counted"])
     assert "Verdict" in (out / "diagnosis.md").read_text() and "acts on" in (out / "diagnosis.md").read_text()
-    assert js["settings"]["blas"] == blas_kernels() and blas_kernels() in (out / "diagnosis.md").read_text()
+    assert js["settings"]["kernels"] == cpu_kernels() and cpu_kernels() in (out / "diagnosis.md").read_text()
     assert {"intervals", "windows", "regimes"} <= set(js["regions"])
     for name in ("effects.png", "bias_map.png", "gap_pulses.png"):
         assert (out / "figures" / name).stat().st_size > 0
@@ -395,7 +395,7 @@ def test_small_validation_matrix(tmp_path):
     assert damping["within_tolerance"] and damping["shrinks"] and damping["heldout_mse_ratio"] < 0.5
     assert 0 < damping["fitted_se"] < damping["fitted"] and np.isnan(table.iloc[1]["fitted_se"])
     assert (tmp_path / "validation.md").read_text().count("| damping |") >= 1
-    assert f"Computed with BLAS {blas_kernels()}" in (tmp_path / "validation.md").read_text()
+    assert f"Computed with {cpu_kernels()}" in (tmp_path / "validation.md").read_text()
 
 
 @pytest.mark.slow

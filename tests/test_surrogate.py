@@ -162,16 +162,19 @@ def test_the_fit_runs_on_one_blas_thread_whatever_the_caller_set(world, monkeypa
     assert seen and all(n == [1] * len(n) for n in seen)
 
 
-@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 OpenBLAS kernel names")
-def test_the_blas_kernels_are_named_as_blas_runs_them():
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 kernel names")
+def test_the_kernels_are_named_as_numpy_and_blas_run_them():
     """One thread fixes the summation order on one processor, not across processors: validation tables
-    and diagnoses record the kernels they ran on (docs/decisions.md, section 56)."""
-    from crashfuse.gp.threads import blas_kernels
-    assert "numpy: openblas" in blas_kernels() and "scipy: openblas" in blas_kernels()
-    code = "import numpy; from crashfuse.gp.threads import blas_kernels; print(blas_kernels())"
-    named = subprocess.run([sys.executable, "-c", code], env={**os.environ, "OPENBLAS_CORETYPE": "Nehalem"},
-                           capture_output=True, text=True, check=True).stdout
-    assert named.count(" Nehalem") == named.count("openblas") >= 1  # SSE4.2: on every x86-64 of the last 15 years
+    and diagnoses record the machine code they ran (docs/decisions.md, sections 56 and 60)."""
+    from crashfuse.gp.threads import cpu_kernels
+    assert cpu_kernels().startswith(f"numpy {np.__version__} SIMD ") and "scipy: openblas" in cpu_kernels()
+    code = "from crashfuse.gp.threads import cpu_kernels; print(cpu_kernels())"
+    # numpy's dispatched targets all off, BLAS on SSE4.2 kernels: on every x86-64 of the last 15 years
+    env = {**os.environ, "OPENBLAS_CORETYPE": "Nehalem",
+           "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR"}
+    named = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert named.startswith(f"numpy {np.__version__} SIMD baseline;")
+    assert named.count(" Nehalem") == named.count("openblas") == 2
 
 
 def test_the_surrogate_records_and_checks_its_campaign(world, fitted):

@@ -17,7 +17,7 @@ from mlflow.tracking import MlflowClient  # noqa: E402
 
 from crashfuse.reporting import tracking  # noqa: E402
 from crashfuse.errors import InputError  # noqa: E402
-from crashfuse.gp.threads import blas_kernels  # noqa: E402
+from crashfuse.gp.threads import cpu_kernels  # noqa: E402
 from crashfuse.evaluation.records import FoldRecord, write_fold_json  # noqa: E402
 from servers import free_port, mlflow_server, serving  # noqa: E402
 
@@ -96,7 +96,7 @@ def check_logged(client: MlflowClient, out: dict, table: pd.DataFrame, results: 
                 want = row.loc[row.window_ms == w, s].item()
                 assert metrics[f"{prefix}_{s}_{w.replace('-', '_')}"] == pytest.approx(want, abs=1e-12)
         assert tags["crashfuse.campaign_hash"] == "ab" * 32 and tags["crashfuse.inputs"] == "paper"
-        assert tags["crashfuse.blas"] == blas_kernels()
+        assert tags["crashfuse.kernels"] == cpu_kernels()
         paths = {a.path for folder in ("figures", "fold") for a in client.list_artifacts(run.info.run_id, folder)}
         assert paths == {"figures/prediction.png", f"fold/{test}.fold.json"}
         local = client.download_artifacts(run.info.run_id, "figures/prediction.png", str(results.parent / "downloads" / run.info.run_id))

@@ -31,7 +31,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect
-from crashfuse.gp.threads import blas_kernels, one_blas_thread
+from crashfuse.gp.threads import cpu_kernels, one_blas_thread
 from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
                                          test_case, warm_start)
 from crashfuse.method.laws import damping_force, decay_length, headline
@@ -190,7 +190,7 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     shrink = _shrink(campaign, case, preds, current, residual, fold_models, n_samples, surrogate, n_jobs, say)
     settings = dict(effects=list(effects), threshold=threshold, alpha=alpha, move=move, k=k, inputs=inputs,
                     n_samples=n_samples, random_state=random_state, rollout_dt_s=DT, rate_aware=case.rate_aware,
-                    blas=blas_kernels())
+                    kernels=cpu_kernels())
     gap = locate_gap(campaign, surrogate=surrogate, k=k, random_state=random_state) if regions else None
     return Diagnosis(chosen, candidates, gap.to_json() if gap else {}, shrink, case, preds, settings, holdout, gap,
                      pairs, float(fx_mse.sum() / cae_mse.sum()))
@@ -714,7 +714,7 @@ def markdown(js: dict) -> str:
         lines.append(f"| {model} | " + " | ".join(f"{row[w]:.3f}" if w in row else "" for w in WINDOWS) + " |")
     if js["regions"]:
         lines += ["", *_regions_markdown(js["regions"])]
-    lines += ["", f"Computed with BLAS {js['settings']['blas']} (docs/decisions.md, section 56)."]
+    lines += ["", f"Computed with {js['settings']['kernels']} (docs/decisions.md, sections 56 and 60)."]
     return "\n".join(lines) + "\n"
 
 

@@ -4,7 +4,8 @@ Every fit runs on one BLAS thread by default: small matrices are faster that way
 threaded matrix product sums in an order that depends on the thread count, so one thread
 also makes results independent of the thread settings. Not of the processor: BLAS picks its
 kernels by instruction set, and other kernels sum in another order (docs/decisions.md, section
-56) - :func:`blas_kernels` names them, and every validation table and diagnosis records it.
+56), and numpy's own vector loops are picked by instruction set too - :func:`cpu_kernels` names both,
+and every validation table and diagnosis records it.
 """
 
 from __future__ import annotations
@@ -12,9 +13,10 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
+import numpy as np
 from threadpoolctl import ThreadpoolController
 
-__all__ = ["blas_threads", "one_blas_thread", "limit_blas", "controller", "blas_kernels"]
+__all__ = ["blas_threads", "one_blas_thread", "limit_blas", "controller", "cpu_kernels"]
 
 
 @functools.cache
@@ -51,12 +53,23 @@ def limit_blas(method):
     return wrapper
 
 
-def blas_kernels() -> str:
-    """numpy's and scipy's BLAS libraries with their kernels, e.g. ``numpy: openblas 0.3.31 SkylakeX;
-    scipy: openblas 0.3.30 SkylakeX``: other kernels (another processor, or ``OPENBLAS_CORETYPE``)
-    can end a fit in another local optimum of the same problem (docs/decisions.md, section 56)."""
+def cpu_kernels() -> str:
+    """The machine code numpy and scipy run here: numpy's vector-loop targets in use and each BLAS library
+    with its kernels, e.g. ``numpy 2.4.6 SIMD X86_V3 X86_V4 AVX512_ICL; numpy: openblas 0.3.31 SkylakeX;
+    scipy: openblas 0.3.30 SkylakeX``. Other code (another processor, ``OPENBLAS_CORETYPE``,
+    ``NPY_DISABLE_CPU_FEATURES``) sums in another order and can end a fit in another local optimum of
+    the same problem (docs/decisions.md, sections 56 and 60)."""
     import scipy.linalg  # noqa: F401 - loads scipy's BLAS (the fits use it) wherever this is asked first
     libs = sorted({f"{Path(lib['filepath']).parent.name.removesuffix('.libs')}: {lib['internal_api']} "
                    f"{lib.get('version') or '?'} {lib.get('architecture') or '?'}"
                    for lib in ThreadpoolController().info() if lib["user_api"] == "blas"})
-    return "; ".join(libs) or "none loaded"
+    return "; ".join([f"numpy {np.__version__} SIMD {_simd_targets()}", *libs])
+
+
+def _simd_targets() -> str:
+    """numpy's runtime-dispatched instruction-set targets this machine runs (``?`` where numpy does not say)."""
+    try:  # numpy has no public accessor; ``numpy.show_runtime`` reads the same two lists
+        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    except ImportError:
+        return "?"
+    return " ".join(t for t in __cpu_dispatch__ if __cpu_features__.get(t)) or "baseline"

@@ -28,7 +28,7 @@ from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
 from crashfuse.errors import InputError
-from crashfuse.gp.threads import blas_kernels
+from crashfuse.gp.threads import cpu_kernels
 from crashfuse.evaluation.iso_table import AUTO, BASELINE, ISO_TABLE, SCORES, model_order, model_tag, window_key
 from crashfuse.evaluation.records import CONDITIONS, FOLD_SUFFIX, FoldRecord, read_fold_json
 from crashfuse.reporting.tables import read_iso_table
@@ -282,7 +282,7 @@ def log_evaluation(results_dir: str | os.PathLike, tracking_uri: str | None = No
     exp_id = campaign_experiment(client, uri, campaign["name"], campaign["hash"])
     common = {PREFIX + "campaign": campaign["name"], PREFIX + "campaign_hash": campaign["hash"],
               PREFIX + "git_commit": git_commit(project_dir), PREFIX + "config_hash": config_hash(config),
-              PREFIX + "blas": blas_kernels()}
+              PREFIX + "kernels": cpu_kernels()}
     existing = _existing_runs(client, exp_id)
     out = {"tracking_uri": uri, "experiment_id": exp_id, "experiment_name": name, "parents": {}, "folds": {}}
     iso_file = Path(results_dir) / ISO_TABLE

@@ -24,7 +24,7 @@ import pandas as pd
 
 from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.errors import InputError
-from crashfuse.gp.threads import blas_kernels
+from crashfuse.gp.threads import cpu_kernels
 from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, effects_label, window_key
 from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.atomic import atomic_path, write_text
@@ -426,7 +426,7 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
     losses = pd.concat(losses, ignore_index=True)
     losses = losses[list(KEY_COLUMNS[:-2]) + [c for c in losses.columns if c not in KEY_COLUMNS[:-2]]]
     result = MatrixResult(table, summary, losses, notes, time.perf_counter() - t0)
-    write_matrix(result, out, header=f"{len(specs)} campaigns; evaluation {eval_key}; BLAS {blas_kernels()}")
+    write_matrix(result, out, header=f"{len(specs)} campaigns; evaluation {eval_key}; {cpu_kernels()}")
     say(f"validate-method: done in {result.wall_time:.0f} s -> {out}")
     return result
 

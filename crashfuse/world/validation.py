@@ -24,7 +24,7 @@ from joblib import Parallel, delayed
 from crashfuse.catalogue import EFFECTS
 from crashfuse.diagnosis.diagnose import diagnose
 from crashfuse.errors import InputError
-from crashfuse.gp.threads import blas_kernels
+from crashfuse.gp.threads import cpu_kernels
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import read_campaign
 from crashfuse.world import effects as world_effects
@@ -140,7 +140,7 @@ def validate(out, effects=EFFECTS, strengths=("realistic", "subtle"), seeds=(0,)
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "validation.csv") as path:
         table.to_csv(path, index=False, float_format="%.6g", lineterminator="\n")
-    write_text(out / "validation.md", validation_markdown(table, blas_kernels()))
+    write_text(out / "validation.md", validation_markdown(table, cpu_kernels()))
     return table
 
 
@@ -161,11 +161,11 @@ def exactly_right(runs: pd.DataFrame) -> pd.Series:
     return runs["all_named"] & runs["spurious"].fillna("").eq("")
 
 
-def validation_markdown(table: pd.DataFrame, blas: str) -> str:
-    """Confusion table per world (withheld x first chosen) and the parameter errors; ``blas``: the
-    BLAS kernels the diagnoses ran on (:func:`crashfuse.gp.threads.blas_kernels`)."""
+def validation_markdown(table: pd.DataFrame, kernels: str) -> str:
+    """Confusion table per world (withheld x first chosen) and the parameter errors; ``kernels``:
+    the numpy and BLAS kernels the diagnoses ran on (:func:`crashfuse.gp.threads.cpu_kernels`)."""
     lines = ["# Withheld-effect validation", "", "Rows: effect withheld from the CAE; columns: first effect chosen.", "",
-             f"Computed with BLAS {blas}: a verdict at a rule's edge can depend on it (docs/decisions.md, section 56).",
+             f"Computed with {kernels}: a verdict at a rule's edge can depend on it (docs/decisions.md, section 56).",
              ""]
     for world, part in table.drop_duplicates(["world", "withheld", "strength", "seed"]).groupby("world", sort=False):
         confusion = pd.crosstab(part["withheld"], part["first"])
