@@ -2,10 +2,9 @@
 
 Every fit runs on one BLAS thread by default: small matrices are faster that way, and a
 threaded matrix product sums in an order that depends on the thread count, so one thread
-also makes results independent of the thread settings. Not of the processor: BLAS picks its
-kernels by instruction set, and other kernels sum in another order (docs/decisions.md, section
-56), and numpy's own vector loops are picked by instruction set too - :func:`cpu_kernels` names both,
-and every validation table and diagnosis records it.
+also makes results independent of the thread settings. Not of the processor: BLAS and numpy's own
+vector loops pick their code by instruction set, and other code sums in another order (docs/decisions.md,
+sections 56 and 60); :func:`cpu_kernels` names both, and every diagnosis and validation table records it.
 """
 
 from __future__ import annotations

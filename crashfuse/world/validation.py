@@ -164,8 +164,9 @@ def exactly_right(runs: pd.DataFrame) -> pd.Series:
 def validation_markdown(table: pd.DataFrame, kernels: str) -> str:
     """Confusion table per world (withheld x first chosen) and the parameter errors; ``kernels``:
     the numpy and BLAS kernels the diagnoses ran on (:func:`crashfuse.gp.threads.cpu_kernels`)."""
-    lines = ["# Withheld-effect validation", "", "Rows: effect withheld from the CAE; columns: first effect chosen.", "",
-             f"Computed with {kernels}: a verdict at a rule's edge can depend on it (docs/decisions.md, section 56).",
+    lines = ["# Withheld-effect validation", "",
+             "Rows: effect withheld from the CAE; columns: first effect chosen.", "",
+             f"Computed with {kernels}: a verdict at a rule's edge can depend on it (docs/decisions.md, 56 and 60).",
              ""]
     for world, part in table.drop_duplicates(["world", "withheld", "strength", "seed"]).groupby("world", sort=False):
         confusion = pd.crosstab(part["withheld"], part["first"])
