@@ -61,7 +61,8 @@ def cpu_kernels() -> str:
     import scipy.linalg  # noqa: F401 - loads scipy's BLAS (the fits use it) wherever this is asked first
     libs = sorted({f"{Path(lib['filepath']).parent.name.removesuffix('.libs')}: {lib['internal_api']} "
                    f"{lib.get('version') or '?'} {lib.get('architecture') or '?'}"
-                   for lib in ThreadpoolController().info() if lib["user_api"] == "blas"})
+                   for lib in ThreadpoolController().info()  # not controller(): it may predate scipy's BLAS
+                   if lib["user_api"] == "blas"})
     return "; ".join([f"numpy {np.__version__} SIMD {_simd_targets()}", *libs])
 
 
