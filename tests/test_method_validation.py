@@ -79,6 +79,33 @@ def test_summary_share_and_worst_over_campaigns():
     assert s["coverage"] == pytest.approx(0.85)
 
 
+def test_targets_by_hand():
+    """Two campaigns (a control and an effect) x K1, K2 and auto: each of issue 16's targets, met and missed."""
+    def row(withheld, model, iso, lost, big, cov):
+        return dict(world="first", withheld=withheld, strength="realistic", seed=0, matrix="table1", n_cae=20,
+                    inputs="state", model=model, n_tests=11, iso_0_60=iso, cae_0_60=0.8, n_test_windows=33,
+                    lost_0_01=lost, lost_0_05=big, worst_margin=-0.01, worst_test="T01", worst_window="0-20",
+                    coverage=cov, coverage_latent=cov)
+    table = pd.DataFrame([row("none", "K1", 0.950, 1, 0, 0.95), row("none", "K2", 0.900, 0, 0, 0.95),
+                          row("none", "auto", 0.935, 0, 0, 0.95),
+                          row("damping", "K1", 0.900, 0, 0, 0.91), row("damping", "K2", 0.920, 2, 1, 0.995),
+                          row("damping", "auto", 0.915, 0, 0, 0.93)])
+    s = mv.summarise(table).set_index("model")
+    # auto trails the best candidate by 0.015 (none: K1 0.950) and 0.005 (damping: K2 0.920); auto is no candidate
+    assert s.loc["auto", "behind_best"] == pytest.approx(0.015)
+    assert s.loc["K1", "behind_best"] == pytest.approx(0.020) and s.loc["K2", "behind_best"] == pytest.approx(0.050)
+    assert (s.loc["K1", "control_lost_0_01"], s.loc["K2", "control_lost_0_01"]) == (1, 0)
+    assert (s.loc["K2", "coverage_min"], s.loc["K2", "coverage_max"]) == (0.95, 0.995)
+    t = mv.targets(s.reset_index()).set_index("model")
+    assert t.loc["auto"].tolist()[1:] == ["1.0000, met", "0, met", "0.930-0.950, met", "0, met", "+0.015, missed"]
+    assert t.loc["K1", "controls lost by > 0.01: none"] == "1, missed"
+    assert t.loc["K2", "beat or tie >= 97%"] == "0.9697, missed" and t.loc["K2", "lost by > 0.05: none"] == "1, missed"
+    assert t.loc["K2", "coverage 0.90-0.99 on every campaign"] == "0.950-0.995, missed"
+    # Without a control or a second model there is nothing to judge those two targets on.
+    alone = mv.targets(mv.summarise(table[(table["withheld"] == "damping") & (table["model"] == "K1")]))
+    assert alone.iloc[0].tolist()[-2:] == ["-", "-"]
+
+
 @pytest.fixture
 def one_fold(monkeypatch):
     """The real evaluate, on one held-out test only (the matrix runs every test)."""
