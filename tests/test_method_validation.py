@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -104,6 +105,12 @@ def test_targets_by_hand():
     # Without a control or a second model there is nothing to judge those two targets on.
     alone = mv.targets(mv.summarise(table[(table["withheld"] == "damping") & (table["model"] == "K1")]))
     assert alone.iloc[0].tolist()[-2:] == ["-", "-"]
+    # Two worlds: every campaign, then each world's alone (here the second holds no control).
+    two = table.assign(world=np.where(table["withheld"] == "damping", "multibody", "first"))
+    by_world = mv._targets_by_world(two, mv.summarise(two)).set_index(["world", "model"])
+    assert by_world.index.get_level_values("world").tolist() == ["all"] * 3 + ["first"] * 3 + ["multibody"] * 3
+    assert by_world.loc[("multibody", "K2"), "lost by > 0.05: none"] == "1, missed"
+    assert by_world.loc[("multibody", "K2"), "controls lost by > 0.01: none"] == "-"
 
 
 @pytest.fixture
