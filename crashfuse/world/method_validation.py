@@ -25,7 +25,7 @@ import pandas as pd
 from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.errors import InputError
 from crashfuse.gp.threads import cpu_kernels
-from crashfuse.evaluation.iso_table import BASELINE, ISO_TABLE, SCORES, effects_label, window_key
+from crashfuse.evaluation.iso_table import AUTO, BASELINE, ISO_TABLE, SCORES, effects_label, window_key
 from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import read_campaign
@@ -477,7 +477,7 @@ def _behind_best(table: pd.DataFrame, column: str) -> pd.Series:
     behind = pd.Series(np.nan, index=table.index)
     for _, g in table.groupby(campaign, sort=False):
         for i in g.index:
-            others = g.loc[(g.index != i) & (g["model"] != "auto"), column]
+            others = g.loc[(g.index != i) & (g["model"] != AUTO), column]
             if len(others):
                 behind[i] = others.max() - g.loc[i, column]
     return behind
