@@ -25,7 +25,7 @@ from crashfuse.method.model import fit_model
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.reporting.plots import plot_evaluation
 
-DEFAULT_K = 1  # the timed single fold (kchoice.choose_k picks K1 for paper, K3 for state: docs/method-rollout.md)
+DEFAULT_K = 1  # the timed single fold (the auto model picks K1 in nearly every fold: docs/bias-model.md)
 
 
 def _campaign(folder):

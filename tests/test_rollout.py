@@ -393,21 +393,6 @@ def test_joint_state_coverage_flags_low_speed_at_large_crush(campaign, surrogate
     assert "state" not in p_paper.extrapolation
 
 
-def test_choose_k_scores_each_k_on_training_tests_only(campaign, surrogate, monkeypatch):
-    from crashfuse.evaluation.kchoice import choose_k
-    from crashfuse.method import model as model_module
-    seen = []
-    real = model_module.bias_data
-    monkeypatch.setattr(model_module, "bias_data", lambda c, tests, *a, **kw: seen.append(list(tests)) or real(c, tests, *a, **kw))
-    held = ["T05", "T06", "T07", "T08", "T09", "T10", "T11"]  # 4 training tests keep it quick
-    k, scores = choose_k(campaign, MethodConfig(inputs="state", **FAST), ks=(1, 2), holdout=held, surrogate=surrogate)
-    assert set(scores) == {1, 2} and k in scores and np.isfinite(scores[1])
-    assert scores[k] == max(scores.values())
-    # every refit leaves one training test out, and no fit ever sees the held-out tests
-    fits = [tests for tests in seen if len(tests) == 3]
-    assert len(fits) == 2 * 4 and all(not set(held) & set(tests) for tests in seen)
-
-
 @pytest.mark.parametrize(("inputs", "trend"), [("paper", "constant"), ("state", "zero")])
 def test_each_input_mode_has_its_default_trend(campaign, surrogate, default_k1, inputs, trend):
     model = default_k1[inputs]

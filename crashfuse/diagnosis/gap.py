@@ -292,8 +292,8 @@ def mixture_bic_k(X, random_state: int = 0, candidates=K_CANDIDATES) -> tuple[in
     with ``random_state`` as given and without its small-cluster merging, so the K chosen here is a
     model-selection reading, not the clusters the bias model then fits; candidates above the number
     of points are skipped. It fits no GP and looks at no held-out test: the method's default K,
-    how well the whole bias model predicts a test it did not see, is
-    :func:`crashfuse.evaluation.kchoice.choose_k`.
+    how well the whole bias model predicts a test it did not see, is the ``auto`` model's
+    (:func:`crashfuse.method.selection.choose`).
 
     Parameters
     ----------
