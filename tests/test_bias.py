@@ -448,6 +448,23 @@ def test_grouped_subset_is_even_within_groups_and_seed_free():
         KrigingGP().fit(X, y, groups[:-1])
 
 
+def test_scatter_is_wider_where_the_held_out_tests_scatter_more():
+    """Tests that differ by a per-test offset on x < 1 only and agree on x > 1: the scatter near a point
+    is what the held-out tests needed there - wide where they scatter, narrow where they agree - and
+    the pooled scatter lies between. Far from every test it falls back on the pooled one."""
+    rng = np.random.default_rng(0)
+    n_tests, per = 8, 40
+    x = np.tile(np.linspace(0.0, 2.0, per), n_tests)
+    offset = np.repeat(0.4 * rng.standard_normal(n_tests), per)
+    y = np.sin(6 * x) + np.where(x < 1.0, offset, 0.0) + 0.01 * rng.standard_normal(x.size)
+    gp = KrigingGP(trend="zero", calibrate_variance=True, estimate_scatter=True, random_state=0).fit(
+        x[:, None], y, np.repeat(np.arange(n_tests), per))
+    spread, agree, far = gp.scatter_var_at(np.array([[0.4], [1.7], [40.0]]))
+    assert agree < 0.2 * gp.scatter_var_ < 0.2 * spread
+    assert agree < 0.01 and spread > 0.02  # offsets of std 0.4 against noise of 0.01
+    np.testing.assert_allclose(far, gp.scatter_var_, rtol=0.1)
+
+
 def test_scatter_of_a_model_fitted_before_it_existed_is_a_clear_error(two_regimes):
     import copy
 
@@ -534,7 +551,7 @@ def test_pooled_clusters_model_the_residual_of_one_gp_over_all_points(pooled_reg
         r_mean, r_std = model._cluster_predict(g, X[rows], return_std=True)
         np.testing.assert_allclose(mean[rows], p_mean[rows] + r_mean, rtol=1e-12)
         np.testing.assert_allclose(std[rows], np.hypot(p_std[rows], r_std), rtol=1e-10)
-    np.testing.assert_allclose(model.scatter_std(X), np.sqrt(pooled.scatter_var_))
+    np.testing.assert_allclose(model.scatter_std(X), np.sqrt(pooled.scatter_var_at(X)))
     assert pooled.scatter_var_ > 0.0
 
 
@@ -714,7 +731,7 @@ def test_onset_correction_widens_the_test_scatter_by_its_own_spread_while_it_act
     fade = np.clip(np.cos(0.5 * np.pi * np.clip((t - 1.0) / 0.3, 0.0, 1.0)) ** 2, 0.0, 1.0)
     np.testing.assert_allclose(onset_model.scatter_std(X), np.sqrt(base**2 + (fade * sd) ** 2), rtol=1e-12)
     assert np.all(onset_model.scatter_std(X)[t < 1.0] > base[t < 1.0]) and np.all(sd > 0)
-    np.testing.assert_array_equal(onset_model.scatter_std(X)[t >= 1.3], base[t >= 1.3])
+    np.testing.assert_allclose(onset_model.scatter_std(X)[t >= 1.3], base[t >= 1.3], rtol=1e-12, atol=1e-15)
 
 
 def test_onset_correction_needs_three_tests_in_its_window():

@@ -187,7 +187,7 @@ def test_fitted_scatter_recovers_offsets_between_replicates():
     latent = est.predict(x[:n, None], return_std=True)[1]
     scatter = est.scatter_std(x[:n, None])
     assert np.all(latent < 0.5 * tau) and 0.5 * tau < scatter[0] < 2.5 * tau
-    assert np.all(scatter == scatter[0])
+    np.testing.assert_allclose(scatter, scatter[0], rtol=0.05)  # the offsets scatter alike everywhere
     plain = GMMGPBias(n_clusters=1, n_restarts=0, random_state=0).fit(x[:, None], y)  # no groups: no scatter
     assert np.all(plain.scatter_std(x[:n, None]) == 0)
 

@@ -140,11 +140,13 @@ def scatter_needs(eta, bounds, hyp, cond, max_folds=SCATTER_MAX_FOLDS, max_rows=
 
     Returns
     -------
-    ndarray, shape (n_needs,)
+    needs : ndarray, shape (n_needs,)
+    rows : ndarray of int, shape (n_needs,)
+        The conditioning row of each need.
     """
     Z_hyp, u_hyp, H_hyp, g_hyp = hyp
     Z, u, H, groups = cond
-    needs = []
+    needs, rows = [], []
     names = np.unique(groups)
     blocks = np.arange(len(names)) % (len(names) if max_folds is None else max_folds)
     for block in np.unique(blocks):
@@ -163,4 +165,5 @@ def scatter_needs(eta, bounds, hyp, cond, max_folds=SCATTER_MAX_FOLDS, max_rows=
         V, W = variance_parts(r, H[out], L, Ht, LM)
         var = latent_variance(V, W) * sigma2 * variance_factor(e, Z_hyp[keep], u_hyp[keep], H_hyp[keep], g_hyp[keep])
         needs.append((u[out] - mean) ** 2 / Z95**2 - var)
-    return np.concatenate(needs) if needs else np.empty(0)
+        rows.append(np.flatnonzero(out))
+    return (np.concatenate(needs), np.concatenate(rows)) if needs else (np.empty(0), np.empty(0, int))

@@ -141,7 +141,11 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         smallest variance that, added to the latent variance, puts 95 % of the training points
         inside the 95 % band when each test is predicted by the GP refitted without it
         (:func:`crashfuse.gp.grouped.scatter_needs`). What a new group (test) scatters about the latent function beyond
-        the function's uncertainty, white noise included; the latent draws leave it out.
+        the function's uncertainty, white noise included; the latent draws leave it out. Pooled over
+        the tests; :meth:`scatter_var_at` gives it near a point.
+    scatter_need_, scatter_Z_, scatter_tests_ : ndarray, ndarray, int
+        The held-out needs (normalised units, shape (n_needs,)), their standardised inputs
+        (n_needs, d) and the number of tests they come from (only with the scatter estimated).
     cv_scores_ : dict of float to float
         Grouped leave-one-group-out log density per candidate bound (empty without groups).
     n_features_in_ : int
@@ -303,9 +307,39 @@ class KrigingGP(RegressorMixin, BaseEstimator):
             return
         bounds = log_bounds(self.n_features_in_, self.theta_bounds, self.theta_max_, self.nugget_bounds)
         cond = (self.Z_condition_, u_cond, self._design(self.Z_condition_), g_cond)
-        need = scatter_needs(eta, bounds, hyp, cond)
+        need, rows = scatter_needs(eta, bounds, hyp, cond)
         if need.size:
             self.scatter_var_ = max(0.0, float(np.quantile(need, 0.95))) * self.y_std_**2
+            self.scatter_need_, self.scatter_Z_ = need, self.Z_condition_[rows]
+            self.scatter_tests_ = len(np.unique(g_cond[rows]))
+
+    def scatter_var_at(self, X):
+        """Test-to-test scatter at ``X`` (y units)^2: the held-out needs' 95 % quantile near ``X``.
+
+        Each conditioning point's need (:func:`crashfuse.gp.grouped.scatter_needs`) is weighted by the
+        GP's own correlation with ``X``, scaled so that one test's points, all at ``X``, weigh 1. Where
+        the points near ``X`` weigh less than that, the rest of the weight is spread evenly over all
+        needs: far from the tests the scatter is about the pooled ``scatter_var_``. A model fitted before
+        the needs were kept has the pooled value everywhere.
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+
+        Returns
+        -------
+        ndarray, shape (m,)
+        """
+        if "scatter_need_" not in self.__dict__:
+            return np.full(len(X), self.scatter_var_)
+        k = correlation(self._standardised(X), self.scatter_Z_, self.theta_)  # (m, needs)
+        k /= len(self.scatter_need_) / self.scatter_tests_
+        w = k + np.maximum(0.0, 1.0 - k.sum(axis=1, keepdims=True)) / len(self.scatter_need_)
+        order = np.argsort(self.scatter_need_)
+        cw = np.cumsum(w[:, order], axis=1)
+        cw /= cw[:, -1:]
+        idx = np.minimum((cw < 0.95).sum(axis=1), len(order) - 1)
+        return np.maximum(0.0, self.scatter_need_[order][idx]) * self.y_std_**2
 
     # ------------------------------------------------------- fitted-model scores
     @limit_blas

@@ -440,8 +440,8 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
     def scatter_std(self, X):
         """Test-to-test scatter std at ``X`` (y units): what a new test adds to the latent band.
 
-        ``select``: the selected GP's ``sqrt(scatter_var_)``; ``blend``: ``sqrt(sum_k w_k s_k^2)``;
-        with a pooled GP, the pooled GP's.
+        Each GP's scatter near ``X`` (:meth:`KrigingGP.scatter_var_at`): ``select``: the selected GP's;
+        ``blend``: ``sqrt(sum_k w_k s_k^2)``; with a pooled GP, the pooled GP's.
 
         Parameters
         ----------
@@ -451,13 +451,14 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         -------
         ndarray, shape (m,)
         """
+        X = check_array(X)
         if self.pooled_gp_ is not None:
-            return np.full(len(X), np.sqrt(self.pooled_gp_.scatter_var_))
+            return np.sqrt(self.pooled_gp_.scatter_var_at(X))
         if not all(hasattr(gp, "scatter_var_") for gp in self.gps_):
             raise InputError("this bias model was fitted before the test-to-test scatter existed: refit it, or "
                              "ask for the latent band (band 'latent')", field="band")
-        w = self._weights(check_array(X))
-        return np.sqrt(w @ np.array([gp.scatter_var_ for gp in self.gps_]))
+        w = self._weights(X)
+        return np.sqrt(np.sum(w * np.stack([gp.scatter_var_at(X) for gp in self.gps_], axis=1), axis=1))
 
     @limit_blas
     def sample_functions(self, X, n_samples=1, random_state=None):
