@@ -152,7 +152,7 @@ def _method_settings(args) -> dict:
     """The MethodConfig settings of ``_add_method_options`` (None: the input mode's default)."""
     return dict(assignment=args.assignment, extra_inputs=args.extra_inputs, cae_decel=args.cae_decel,
                 n_grid=args.n_grid, use_companion=args.use_companion, trend=args.trend, pooled=args.pooled,
-                onset=args.onset, shrink=args.shrink, effects=_effects_arg(args.effects))
+                onset=args.onset, shrink=args.shrink, chain=args.chain, effects=_effects_arg(args.effects))
 
 
 def _effects_arg(effects: list) -> str | tuple:
@@ -549,6 +549,10 @@ def _add_method_options(s) -> None:
     s.add_argument("--shrink", action=argparse.BooleanOptionalAction, default=None,
                    help="scale the bias mean, over the time since contact, by how well the training tests' "
                         "held-out predictions predict them (state inputs only; default: on for state)")
+    s.add_argument("--chain", action=argparse.BooleanOptionalAction, default=None,
+                   help="fit the tests' accelerometer mount resonance between the tests and their CAE runs, "
+                        "learn the bias of the tests' body decelerations and read the rollout through the mount "
+                        "(default: off)")
     s.add_argument("--effects", nargs="+", default=["none"], metavar="EFFECT",
                    help="physics-first hybrid: effect laws fitted to the training tests and added to the CAE "
                         f"model before the bias is learnt - auto (chosen on the training tests), none (default) "
@@ -964,7 +968,7 @@ def _add_register(sub) -> None:
 _METHOD_FLAGS = {"k": "--k", "inputs": "--inputs", "holdout": "--holdout", "random_state": "--seed",
                  "assignment": "--assignment", "use_companion": "--use-companion", "extra_inputs": "--extra-inputs",
                  "cae_decel": "--cae-decel", "n_grid": "--n-grid", "trend": "--trend", "pooled": "--pooled",
-                 "onset": "--onset", "shrink": "--shrink", "effects": "--effects"}
+                 "onset": "--onset", "shrink": "--shrink", "chain": "--chain", "effects": "--effects"}
 _FLAGS = {
     "fit": _METHOD_FLAGS,
     "rollout": {"n_samples": "--samples", "band": "--band", "test": "--test"},

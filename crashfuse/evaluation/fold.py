@@ -81,6 +81,8 @@ def rollout_fold(model, campaign, test_id: str, n_samples: int, band: str = "tes
     settings = {**fold_settings(config, n_samples), "band": band}
     if model.physics is not None:
         settings["effects_fitted"] = effects_label(model.physics.effects)
+    if model.chain is not None:
+        settings.update(chain_f_res_hz=model.chain.f_res_, chain_zeta=model.chain.zeta_res_)
     metrics = {"fit_seconds": float(model.fit_seconds), "predict_seconds": seconds,
                "cluster_switches": float(cluster_switches(model, pred)),
                "n_gps_loading": float(_n_gps(model, "loading")), "n_gps_unloading": float(_n_gps(model, "unloading")),

@@ -29,6 +29,7 @@ MODE_DEFAULTS = {
         "onset": False,  # the paper inputs carry no velocity, hence no time since contact
         "shrink": False,  # as published: the GP mean as it is
         "use_companion": False,  # as published: a condition's CAE curve from the surrogate G_a
+        "chain": False,  # as published: the bias against the CAE pulse as it is
     },
     "state": {
         # a rate effect scales the force, so the bias relative to the CAE deceleration; chosen by
@@ -50,6 +51,9 @@ MODE_DEFAULTS = {
         # a held-out test is predicted on its own CAE run, the one its CAE row scores: the fold then
         # measures the correction, not the surrogate's error there too (docs/decisions.md, section 39)
         "use_companion": True,
+        # off: the tests' accelerometer mount taken out of the bias and put back on the rollout lifts the
+        # mean score on the method matrix, but costs the slowest test of `paper` (docs/decisions.md, section 65)
+        "chain": False,
     },
 }
 
@@ -63,7 +67,8 @@ _BIAS_DEFAULTS = GMMGPBias().get_params()
 class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
-    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink`` and ``use_companion`` left as None take the input mode's value
+    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion`` and ``chain`` left as None take the
+    input mode's value
     (``MODE_DEFAULTS``), so a config always holds the values the fit used. To change the input
     mode of a config, build a new one (``dataclasses.replace`` keeps the old mode's values).
 
@@ -105,6 +110,11 @@ class MethodConfig:
         Scale the loading branch's bias mean, over the time since contact, by how well the training
         tests' leave-one-test-out predictions predict them (:class:`crashfuse.method.onset.OnsetCorrectedBias`
         ``shrink_width``; ``state`` inputs only).
+    chain : bool or None
+        Fit the tests' measurement chain (an accelerometer mount resonance,
+        :class:`crashfuse.method.chain.MountResonance`) between the training tests and their companion
+        runs, learn the bias of the tests' body decelerations (the mount taken out), and read the
+        rollout through the mount.
     weights : bool
         Axle masses among the bias inputs.
     velocity : {"linear", "sqrt"}
@@ -137,6 +147,7 @@ class MethodConfig:
     pooled: bool | None = None
     onset: bool | None = None
     shrink: bool | None = None
+    chain: bool | None = None
     weights: bool = True
     velocity: str = "sqrt"
     effects: tuple | str = ()
@@ -158,7 +169,7 @@ class MethodConfig:
         _one_of("target", self.target, TARGETS)
         _one_of("trend", self.trend, TRENDS)
         _one_of("velocity", self.velocity, tuple(VELOCITY))
-        for name in ("extra_inputs", "cae_decel", "use_companion", "pooled", "onset", "shrink", "weights",
+        for name in ("extra_inputs", "cae_decel", "use_companion", "pooled", "onset", "shrink", "chain", "weights",
                      "calibrate_variance", "estimate_scatter"):
             self._set(name, _boolean(name, getattr(self, name)))
         self._set("effects", check_effects(self.effects))

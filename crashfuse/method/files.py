@@ -15,6 +15,7 @@ from sklearn.preprocessing import StandardScaler
 from crashfuse.gp.kriging import KrigingGP
 from crashfuse.gp.replicates import ReplicateMeanGP
 from crashfuse.method.mixture import GMMGPBias
+from crashfuse.method.chain import MountResonance
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.hybrid import PhysicsFirst
 from crashfuse.method.model import Condition, FittedModel
@@ -37,4 +38,5 @@ TYPES = (
     ReplicateMeanGP,  # OnsetCorrectedBias.onset_gp_
     PhysicsFirst,  # FittedModel.physics: the hybrid's effect laws
     nominal_time,  # OnsetCorrectedBias.time: functools.partial(nominal_time, columns)
+    MountResonance,  # FittedModel.chain: the tests' measurement chain
 )

@@ -30,6 +30,7 @@ from crashfuse.signals.dynamics import Trajectory
 from crashfuse.errors import InputError
 from crashfuse.io import persist
 from crashfuse.io.campaign import Campaign
+from crashfuse.method.chain import MountResonance, body_campaign
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.effect_fit import faster_curve
 from crashfuse.method.hybrid import AUTO, PhysicsFirst, fit_physics
@@ -115,6 +116,10 @@ class FittedModel:
         When the fit started, UNIX seconds (0: unknown): a tracked fold run starts then.
     surrogate_file : str or None
         Where the surrogate lives when the file was saved without it (:meth:`save`).
+    chain : MountResonance or None
+        The tests' measurement chain (``config.chain``), fitted on the training tests and their
+        companion runs: the bias is learnt from the tests' body decelerations (their records with the
+        mount taken out), and a rollout is read through it (:func:`crashfuse.method.rollout.predict`).
     """
 
     surrogate: CAESurrogate
@@ -134,6 +139,7 @@ class FittedModel:
     fit_seconds: float = 0.0
     fit_started: float = 0.0
     surrogate_file: str | None = None
+    chain: MountResonance | None = None
 
     @property
     def inputs(self) -> str:
@@ -417,8 +423,9 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
     if physics is not None and (physics.tests != sorted(train) or config.effects not in (AUTO, physics.effects)):
         raise ValueError(f"physics fitted on {physics.tests} with {physics.effects}, this fit trains on "
                          f"{sorted(train)} with {config.effects}")
+    chain = fit_chain(campaign, train) if config.chain else None
     curves = training_curves(campaign, train, surrogate, physics)
-    data = training_data(campaign, train, config, surrogate, physics, curves)
+    data = training_data(campaign, train, config, surrogate, physics, curves, chain)
     seeds = np.random.RandomState(config.random_state).randint(SEED_MAX, size=len(BRANCHES))
     pooled = pooled or {}
     bias = {b: _fit_branch(data, b, config, int(seed), campaign.root, pooled.get(b))
@@ -429,12 +436,27 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
         groups={b: sorted(set(data.branch(b).groups)) for b in BRANCHES}, missing=dict(data.missing),
         ranges=_ranges(campaign, train, data, curves), companions=_companions(campaign),
         categories=dict(data.categories), campaign_hash=campaign.content_hash(), physics=physics,
-        fit_seconds=time.perf_counter() - t0, fit_started=started,
+        fit_seconds=time.perf_counter() - t0, fit_started=started, chain=chain,
     )
 
 
+def fit_chain(campaign: Campaign, tests) -> MountResonance | None:
+    """The tests' measurement chain fitted on ``tests`` and their companion CAE runs (on the test's times).
+
+    None where none of ``tests`` names a companion run: the bias is then learnt against the surrogate's
+    curves, and the chain is not fitted (a stated fallback, recorded as the model's ``chain``).
+    """
+    pairs = []
+    for t in tests:
+        test, cae = training_test(campaign, t), campaign.companion(t)
+        if cae is not None:
+            pairs.append((test.time, test.decel, np.interp(test.time, cae.time, cae.decel)))
+    return MountResonance().fit(pairs) if pairs else None
+
+
 def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CAESurrogate,
-                  physics: PhysicsFirst | None = None, curves: dict | None = None) -> BiasData:
+                  physics: PhysicsFirst | None = None, curves: dict | None = None,
+                  chain: MountResonance | None = None) -> BiasData:
     """The bias data of ``tests`` as a fit with ``config`` learns them (each test with its companion run,
     plus the hybrid's effect laws where ``physics`` is given).
 
@@ -451,11 +473,16 @@ def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CA
         Effect laws added to every test's CAE curve (:meth:`FittedModel.cae_curve` does the same).
     curves : dict, optional
         :func:`training_curves` of these tests, when already at hand.
+    chain : MountResonance, optional
+        The tests' measurement chain: the bias is that of the tests' body decelerations
+        (:func:`crashfuse.method.chain.body_campaign`).
 
     Returns
     -------
     BiasData
     """
+    if chain is not None:
+        campaign = body_campaign(campaign, chain, tests)
     return bias_data(campaign, tests, config.inputs, config.extra_inputs, config.n_grid, surrogate=surrogate,
                      use_companion=True, cae_curves=curves or training_curves(campaign, tests, surrogate, physics),
                      target=config.target, weights=config.weights, velocity=config.velocity,

@@ -282,6 +282,7 @@ def predict(model, v0, front_weight, rear_weight, powertrain=None, drive=None, n
         else random_state
     curve, draws, mean_traj, cae = _prepare(model, cond, n_samples, rng, dt, n_steps)
     mc = rollout(_decel_fn(curve, draws, model.relative), np.full(n_samples, cond.v0), dt, n_steps)
+    mc, mean_traj = (_read_through(model, traj) for traj in (mc, mean_traj))
     scatter = decel_scatter(model, curve, mean_traj, cond) if band == "test" else np.zeros(mean_traj.time.size)
     return _summarise(mc, mean_traj, cae, cond, model.extrapolation(cond, mean_traj), scatter, band)
 
@@ -311,6 +312,16 @@ def _prepare(model, cond, n_samples: int, rng, dt: float, n_steps: int):
     draws = {b: _drawn_bias(model, b, cond, means[b], mean_traj, n_samples, rng, curve) for b in BRANCHES}
     draws["unloading"] = _rebound_bounded(model, curve, draws["unloading"], mean_traj)
     return curve, draws, mean_traj, cae
+
+
+def _read_through(model, traj: Trajectory) -> Trajectory:
+    """The rollout as the tests' accelerometer reads it: every sample's deceleration read through the
+    model's measurement chain (unchanged without one). The bias was learnt from the tests' body
+    decelerations, so CAE and bias ring together, where each sample reaches its crush stages; the
+    motion - velocity, displacement - stays the body's."""
+    if model.chain is None:
+        return traj
+    return dataclasses.replace(traj, decel=model.chain.apply(traj.time, traj.decel))
 
 
 def _positive_int(value, field):

@@ -43,7 +43,8 @@ def inner_error(model: FittedModel, campaign: Campaign) -> float:
         ``inf`` where a GP's rows come from a single test (that test cannot be left out: a cluster
         of one test) or a matrix is singular.
     """
-    data = training_data(campaign, model.training_tests, model.config, model.surrogate, model.physics)
+    data = training_data(campaign, model.training_tests, model.config, model.surrogate, model.physics,
+                         chain=model.chain)
     squares = {t: [] for t in model.training_tests}
     for b in BRANCHES:
         est, d = model.bias_.get(b), data.branch(b)

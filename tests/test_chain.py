@@ -1,0 +1,124 @@
+"""The tests' measurement chain: the mount recovered, the identity kept where nothing rings, and a
+rollout read through it with the body's motion left alone."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from crashfuse.errors import InputError
+from crashfuse.method.chain import MountResonance
+from crashfuse.method.config import MethodConfig
+from crashfuse.method.model import fit_chain, fit_model, load_model
+from crashfuse.method.rollout import predict
+from crashfuse.method.surrogate import CAESurrogate
+from crashfuse.world.generate import build
+from crashfuse.world.presets import resolve
+from crashfuse.world.simulate import MEASUREMENT
+
+G = 9.80665
+FS = 12_500.0
+FAST = dict(n_grid=40, n_restarts=0)
+
+
+def _mount(x, f, zeta):
+    """The base-excited seat, written here from its transfer function (not the module's filter)."""
+    w = 2 * np.pi * f
+    sys = signal.cont2discrete(([2 * zeta * w, w * w], [1.0, 2 * zeta * w, w * w]), 1 / FS, method="bilinear")
+    return signal.lfilter(np.ravel(sys[0]), sys[1], x)
+
+
+def _pairs(f=None, zeta=0.1, gains=(1.0,) * 6, noise_g=0.05, seed=0):
+    """(time, test, cae) of six smooth pulses of 30-60 ms, the tests read through a mount of ``f`` Hz."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0, 0.1, 1 / FS)
+    out = []
+    for i, gain in enumerate(gains):
+        length = 0.03 + 0.006 * i
+        cae = 25 * G * np.sin(np.pi * np.clip(t / length, 0, 1)) ** 1.5
+        test = gain * (cae if f is None else _mount(cae, f, zeta))
+        out.append((t, test + noise_g * G * rng.standard_normal(t.size), cae))
+    return out
+
+
+def test_the_mount_is_recovered_from_tests_read_through_it():
+    chain = MountResonance().fit(_pairs(f=140.0, zeta=0.08))
+    assert chain.f_res_ == pytest.approx(140.0, rel=0.03)
+    assert chain.zeta_res_ == pytest.approx(0.08, rel=0.15)
+    assert chain.gain_ > 0.5 and chain.n_tests_ == 6
+
+
+def test_a_force_the_cae_lacks_is_not_read_as_the_mount():
+    # Every test 10-40 % above its CAE run (a rate effect, a heavier car) besides the mount.
+    chain = MountResonance().fit(_pairs(f=110.0, gains=(1.1, 1.2, 1.3, 1.4, 1.25, 1.15)))
+    assert chain.f_res_ == pytest.approx(110.0, rel=0.03)
+
+
+def test_tests_that_do_not_ring_fit_a_chain_that_leaves_a_pulse_as_it_is():
+    pairs = _pairs(f=None, gains=(1.0, 1.2, 0.9, 1.1, 1.3, 1.0))
+    chain = MountResonance().fit(pairs)
+    t, _, cae = pairs[2]
+    assert np.abs(chain.apply(t, cae) - cae).max() < 0.02 * cae.max()
+    assert chain.gain_ < 0.05
+
+
+def test_the_body_deceleration_read_through_the_mount_is_the_record():
+    chain = MountResonance().fit(_pairs(f=140.0, zeta=0.08))
+    t, test, cae = _pairs(f=140.0, zeta=0.08, noise_g=0.0)[3]
+    body = chain.body(t, test)
+    assert np.abs(chain.apply(t, body) - test).max() < 0.01 * test.max()
+    assert np.abs(body - cae).max() < np.abs(test - cae).max() / 3  # the ringing taken out: the body's pulse
+
+
+def test_no_pair_is_a_clear_error():
+    with pytest.raises(InputError, match="companion") as err:
+        MountResonance().fit([])
+    assert err.value.field == "chain"
+
+
+@pytest.fixture(scope="module")
+def campaign():
+    return build(resolve("paper"), seed=0, n_cae=20)[0]
+
+
+@pytest.fixture(scope="module")
+def surrogate(campaign):
+    return CAESurrogate(random_state=0).fit(campaign)
+
+
+def test_the_first_worlds_accelerometer_mount_is_the_chain_fitted_on_its_tests(campaign):
+    chain = fit_chain(campaign, campaign.tests)
+    assert chain.f_res_ == pytest.approx(MEASUREMENT["measurement.f_res"], rel=0.1)
+    assert chain.zeta_res_ == pytest.approx(MEASUREMENT["measurement.zeta_res"], rel=0.5)
+
+
+def test_a_chained_model_reads_its_rollout_through_the_mount_and_keeps_the_bodys_motion(campaign, surrogate, tmp_path):
+    on = fit_model(campaign, MethodConfig(k=1, inputs="state", chain=True, **FAST), holdout="T05",
+                   surrogate=surrogate)
+    off = fit_model(campaign, MethodConfig(k=1, inputs="state", **FAST), holdout="T05", surrogate=surrogate)
+    assert on.chain is not None and off.config.chain is False and off.chain is None  # off by default
+    test = campaign.pulses["T05"]
+    args = (test.v0, test.front_weight, test.rear_weight, test.meta["powertrain"], test.meta["drive"])
+    kw = dict(n_samples=3, random_state=0, duration=float(test.time[-1]), dt=test.dt)
+    zero = dataclasses.replace(on, bias_={"loading": None, "unloading": None})
+    pred = predict(zero, *args, **kw)
+    np.testing.assert_allclose(pred.decel, on.chain.apply(pred.time, pred.cae_decel), atol=1e-9 * G)
+    bare = predict(dataclasses.replace(zero, chain=None), *args, **kw)
+    np.testing.assert_array_equal(pred.velocity, bare.velocity)
+    np.testing.assert_array_equal(pred.cae_decel, bare.cae_decel)
+    # The accelerometer's ringing is what the chain adds: the corrected pulse is nearer the test early on.
+    early = test.time <= 0.02
+    err = {name: np.sqrt(np.mean((np.interp(test.time, p.time, p.decel) - test.decel)[early] ** 2))
+           for name, p in (("on", predict(on, *args, **kw)), ("off", predict(off, *args, **kw)))}
+    assert err["on"] < err["off"]
+    on.save(tmp_path / "m.cfmodel")
+    back = load_model(tmp_path / "m.cfmodel")
+    assert (back.chain.f_res_, back.chain.zeta_res_) == (on.chain.f_res_, on.chain.zeta_res_)
+
+
+def test_tests_without_companion_runs_keep_the_cae_as_it_is(campaign, surrogate):
+    alone = dataclasses.replace(campaign, conditions=campaign.conditions.drop(columns="cae_run_id"))
+    assert fit_model(alone, MethodConfig(k=1, inputs="state", chain=True, **FAST), surrogate=surrogate).chain is None
