@@ -52,7 +52,7 @@ MODE_DEFAULTS = {
         # measures the correction, not the surrogate's error there too (docs/decisions.md, section 39)
         "use_companion": True,
         # off: the tests' accelerometer mount taken out of the bias and put back on the rollout lifts the
-        # mean score on the method matrix, but costs the slowest test of `paper` (docs/decisions.md, section 65)
+        # first world's matrix, not the second's, and costs the slowest tests (docs/decisions.md, section 65)
         "chain": False,
     },
 }
