@@ -552,7 +552,7 @@ def _add_method_options(s) -> None:
     s.add_argument("--chain", action=argparse.BooleanOptionalAction, default=None,
                    help="fit the tests' accelerometer mount resonance between the tests and their CAE runs, "
                         "learn the bias of the tests' body decelerations and read the rollout through the mount "
-                        "(default: off)")
+                        "(default: on for state)")
     s.add_argument("--effects", nargs="+", default=["none"], metavar="EFFECT",
                    help="physics-first hybrid: effect laws fitted to the training tests and added to the CAE "
                         f"model before the bias is learnt - auto (chosen on the training tests), none (default) "

@@ -13,6 +13,7 @@ from crashfuse.errors import InputError
 from crashfuse.method.chain import MountResonance
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import fit_chain, fit_model, load_model
+from crashfuse.method.projection import bias_scale
 from crashfuse.method.rollout import predict
 from crashfuse.method.surrogate import CAESurrogate
 from crashfuse.world.generate import build
@@ -98,8 +99,10 @@ def test_the_first_worlds_accelerometer_mount_is_the_chain_fitted_on_its_tests(c
 def test_a_chained_model_reads_its_rollout_through_the_mount_and_keeps_the_bodys_motion(campaign, surrogate, tmp_path):
     on = fit_model(campaign, MethodConfig(k=1, inputs="state", chain=True, **FAST), holdout="T05",
                    surrogate=surrogate)
-    off = fit_model(campaign, MethodConfig(k=1, inputs="state", **FAST), holdout="T05", surrogate=surrogate)
-    assert on.chain is not None and off.config.chain is False and off.chain is None  # off by default
+    off = fit_model(campaign, MethodConfig(k=1, inputs="state", chain=False, **FAST), holdout="T05",
+                    surrogate=surrogate)
+    assert on.chain is not None and off.chain is None
+    assert MethodConfig(inputs="state").chain and not MethodConfig(inputs="paper").chain  # the state mode's default
     test = campaign.pulses["T05"]
     args = (test.v0, test.front_weight, test.rear_weight, test.meta["powertrain"], test.meta["drive"])
     kw = dict(n_samples=3, random_state=0, duration=float(test.time[-1]), dt=test.dt)
@@ -109,11 +112,12 @@ def test_a_chained_model_reads_its_rollout_through_the_mount_and_keeps_the_bodys
     bare = predict(dataclasses.replace(zero, chain=None), *args, **kw)
     np.testing.assert_array_equal(pred.velocity, bare.velocity)
     np.testing.assert_array_equal(pred.cae_decel, bare.cae_decel)
-    # The accelerometer's ringing is what the chain adds: the corrected pulse is nearer the test early on.
+    # The accelerometer's ringing is what the chain adds: the CAE read through it is nearer the test early
+    # on (rms 1.41 against 1.61 g over 0-20 ms).
     early = test.time <= 0.02
     err = {name: np.sqrt(np.mean((np.interp(test.time, p.time, p.decel) - test.decel)[early] ** 2))
-           for name, p in (("on", predict(on, *args, **kw)), ("off", predict(off, *args, **kw)))}
-    assert err["on"] < err["off"]
+           for name, p in (("on", pred), ("off", bare))}
+    assert err["on"] < 0.95 * err["off"]
     on.save(tmp_path / "m.cfmodel")
     back = load_model(tmp_path / "m.cfmodel")
     assert (back.chain.f_res_, back.chain.zeta_res_) == (on.chain.f_res_, on.chain.zeta_res_)
@@ -122,3 +126,17 @@ def test_a_chained_model_reads_its_rollout_through_the_mount_and_keeps_the_bodys
 def test_tests_without_companion_runs_keep_the_cae_as_it_is(campaign, surrogate):
     alone = dataclasses.replace(campaign, conditions=campaign.conditions.drop(columns="cae_run_id"))
     assert fit_model(alone, MethodConfig(k=1, inputs="state", chain=True, **FAST), surrogate=surrogate).chain is None
+
+
+def test_a_slow_test_held_out_keeps_its_band_at_contact_within_the_tests_relative_bias(campaign, surrogate):
+    """The tests' body decelerations are smooth, and a relative-target GP fitted to them took a huge
+    variance away from its data: the slowest test held out (T01), its latent band in the first 10 ms
+    spread +-18 g around a 2 g pulse, bounded only by the fast tests' bias rms in m/s^2. The draws are
+    now bounded in the target's own units too: within a few times the tests' relative bias there."""
+    m = fit_model(campaign, MethodConfig(k=1, inputs="state", chain=True), holdout="T01", surrogate=surrogate)
+    test = campaign.pulses["T01"]
+    pred = predict(m, test.v0, test.front_weight, test.rear_weight, test.meta["powertrain"], test.meta["drive"],
+                   n_samples=200, random_state=0, duration=float(test.time[-1]), dt=test.dt)
+    early = pred.time <= 0.01
+    half = (pred.decel_latent_hi - pred.decel_latent_lo)[early] / 2
+    assert np.all(half <= 4 * m.target_spread("loading") * bias_scale(pred.cae_decel[early]))

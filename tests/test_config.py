@@ -29,7 +29,7 @@ def test_the_two_modes_differ_where_the_method_says():
 
 def test_a_default_config_hands_the_bias_model_its_own_defaults():
     config = MethodConfig(k=3, inputs="state")
-    own = GMMGPBias(n_clusters=3, trend="zero", pooled=True).get_params()
+    own = GMMGPBias(n_clusters=3, trend="zero", pooled=True, theta_bounds=(0.1, 1e3)).get_params()
     assert GMMGPBias(n_clusters=3, **config.bias_params()).get_params() == own
     assert config.changed_bias_settings() == {}
 
@@ -53,6 +53,9 @@ def test_a_default_config_hands_the_bias_model_its_own_defaults():
     (dict(max_condition_points=0), "max_condition_points"),
     (dict(theta_max_candidates=()), "theta_max_candidates"),
     (dict(theta_max_candidates=(1.0, -2.0)), "theta_max_candidates"),
+    (dict(theta_min=0.0), "theta_min"),
+    (dict(theta_min="small"), "theta_min"),
+    (dict(theta_min=10.0, theta_max_candidates=(1.0, 10.0)), "theta_min"),
 ])
 def test_bad_settings_name_the_setting(kw, field):
     with pytest.raises(InputError) as err:

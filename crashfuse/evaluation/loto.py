@@ -264,23 +264,26 @@ def _load_shared(path):
 
 
 def _chain(campaign, surrogate, configs, test_id, physics, *settings) -> list:
-    """The folds of one input mode and held-out test, K ascending: a K > 1 model takes the pooled GP of
-    the K before it (:meth:`FittedModel.all_rows_gps`, the same fit), so it is fitted once per fold."""
-    out, pooled = [], None
+    """The folds of one input mode and held-out test, K ascending: a K > 1 model takes the pooled GP and
+    the measurement chain of the K before it (:meth:`FittedModel.all_rows_gps`, :attr:`FittedModel.chain`:
+    the same fits), so each is fitted once per fold."""
+    out, pooled, mount = [], None, None
     for config in configs:
-        res = _fold(campaign, surrogate, config, test_id, physics, *settings, pooled=pooled)
-        pooled = res.pop("model").all_rows_gps()
+        res = _fold(campaign, surrogate, config, test_id, physics, *settings, pooled=pooled, chain=mount)
+        model = res.pop("model")
+        pooled, mount = model.all_rows_gps(), model.chain
         out.append(res)
     return out
 
 
 def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, auto_modes=(),
-          pooled=None) -> dict:
+          pooled=None, chain=None) -> dict:
     """Fit ``config`` without ``test_id`` (with the hybrid's ``physics`` fitted without it, if any, and
-    the ``pooled`` GPs of another K's fit), roll out its condition and score it
+    the ``pooled`` GPs and measurement ``chain`` of another K's fit), roll out its condition and score it
     (:mod:`crashfuse.evaluation.fold`, the workflow's three steps in one process); the fit's inner
     error too where its input mode is among ``auto_modes``."""
-    model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics, pooled=pooled)
+    model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics, pooled=pooled,
+                      chain=chain)
     return {**scored_fold(model, campaign, surrogate, test_id, n_samples, band, config.inputs in auto_modes),
             "model": model}
 

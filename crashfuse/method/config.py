@@ -19,6 +19,7 @@ from crashfuse.method.projection import INPUTS, TARGETS, VELOCITY
 
 ASSIGNMENTS = ("select", "blend")  # cluster rules of GMMGPBias
 TRENDS = ("zero", "constant", "linear")  # trends of KrigingGP
+_THETA_MIN, _THETA_MAX = GMMGPBias().theta_bounds  # the bias model's own bounds on its GPs' theta
 
 # The settings that depend on the input mode, and why each mode has its value.
 MODE_DEFAULTS = {
@@ -30,6 +31,7 @@ MODE_DEFAULTS = {
         "shrink": False,  # as published: the GP mean as it is
         "use_companion": False,  # as published: a condition's CAE curve from the surrogate G_a
         "chain": False,  # as published: the bias against the CAE pulse as it is
+        "theta_min": _THETA_MIN,  # the bias model's own bound: an input may drop out entirely
     },
     "state": {
         # a rate effect scales the force, so the bias relative to the CAE deceleration; chosen by
@@ -51,9 +53,14 @@ MODE_DEFAULTS = {
         # a held-out test is predicted on its own CAE run, the one its CAE row scores: the fold then
         # measures the correction, not the surrogate's error there too (docs/decisions.md, section 39)
         "use_companion": True,
-        # off: the tests' accelerometer mount taken out of the bias and put back on the rollout lifts the
-        # first world's matrix, not the second's, and costs the slowest tests (docs/decisions.md, section 65)
-        "chain": False,
+        # the tests ring on their accelerometer mount, locked in time, which the bias (learnt in crush)
+        # cannot carry between speeds: the bias of the tests' body decelerations, the rollout read through
+        # the mount (docs/decisions.md, sections 65-66)
+        "chain": True,
+        # the GPs' correlation lengths at most ~2.2 standard deviations of each input: fitted by likelihood
+        # to smooth bias data (the body decelerations), unbounded lengths took a near-infinite variance and
+        # a mean that swung to slow tests and late crush like a polynomial (docs/decisions.md, section 66)
+        "theta_min": 0.1,
     },
 }
 
@@ -67,10 +74,10 @@ _BIAS_DEFAULTS = GMMGPBias().get_params()
 class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
-    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion`` and ``chain`` left as None take the
-    input mode's value
-    (``MODE_DEFAULTS``), so a config always holds the values the fit used. To change the input
-    mode of a config, build a new one (``dataclasses.replace`` keeps the old mode's values).
+    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion``, ``chain`` and ``theta_min``
+    left as None take the input mode's value (``MODE_DEFAULTS``), so a config always holds the values the
+    fit used. To change the input mode of a config, build a new one (``dataclasses.replace`` keeps the
+    old mode's values).
 
     Parameters
     ----------
@@ -110,6 +117,10 @@ class MethodConfig:
         Scale the loading branch's bias mean, over the time since contact, by how well the training
         tests' leave-one-test-out predictions predict them (:class:`crashfuse.method.onset.OnsetCorrectedBias`
         ``shrink_width``; ``state`` inputs only).
+    theta_min : float or None
+        Lower bound of every GP correlation parameter ``theta`` of the bias model (> 0; the upper is
+        chosen among ``theta_max_candidates``): in standardised inputs, a correlation length of at most
+        ``1 / sqrt(2 theta_min)`` standard deviations (:class:`crashfuse.gp.kriging.KrigingGP`).
     chain : bool or None
         Fit the tests' measurement chain (an accelerometer mount resonance,
         :class:`crashfuse.method.chain.MountResonance`) between the training tests and their companion
@@ -148,6 +159,7 @@ class MethodConfig:
     onset: bool | None = None
     shrink: bool | None = None
     chain: bool | None = None
+    theta_min: float | None = None
     weights: bool = True
     velocity: str = "sqrt"
     effects: tuple | str = ()
@@ -179,6 +191,10 @@ class MethodConfig:
         for name in ("max_fit_points", "max_condition_points", "min_cluster_points"):
             self._set(name, _integer(name, getattr(self, name), 1, name, optional=True))
         self._set("theta_max_candidates", _positive_floats("theta_max_candidates", self.theta_max_candidates))
+        self._set("theta_min", _positive_float("theta_min", self.theta_min))
+        if self.theta_min >= min(self.theta_max_candidates):
+            raise InputError(f"expected theta_min below every theta_max_candidates {self.theta_max_candidates}, "
+                             f"got {self.theta_min}", field="theta_min")
         for name in ("onset", "shrink"):
             if getattr(self, name) and self.inputs != "state":
                 raise InputError(f"{name} needs the state inputs (the velocity gives the time since contact)",
@@ -189,7 +205,10 @@ class MethodConfig:
 
     def bias_params(self) -> dict:
         """The :class:`crashfuse.method.mixture.GMMGPBias` settings besides K, assignment and the seed."""
-        return {"trend": self.trend, "pooled": self.pooled, **{name: getattr(self, name) for name in BIAS_SETTINGS}}
+        # None: a config read from a model file fitted before the bound was a setting, with the model's own
+        theta_min = _THETA_MIN if self.theta_min is None else self.theta_min
+        return {"trend": self.trend, "pooled": self.pooled, "theta_bounds": (theta_min, _THETA_MAX),
+                **{name: getattr(self, name) for name in BIAS_SETTINGS}}
 
     def changed_bias_settings(self) -> dict:
         """The ``BIAS_SETTINGS`` whose value is not the bias model's default."""
@@ -223,6 +242,16 @@ def _integer(name: str, value, low: int, what: str, optional: bool = False):
         raise InputError(f"expected an integer {what} >= {low}{' or None' if optional else ''}, got {value!r}",
                          field=name)
     return int(value)
+
+
+def _positive_float(name: str, value) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = np.nan
+    if isinstance(value, bool) or not (np.isfinite(out) and out > 0):
+        raise InputError(f"expected a positive number, got {value!r}", field=name)
+    return out
 
 
 def _positive_floats(name: str, values) -> tuple:

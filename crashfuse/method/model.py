@@ -97,8 +97,10 @@ class FittedModel:
         the CAE runs' conditions (the surrogate's range); ``state`` (``state`` inputs only): per
         branch, the joint (x, v) coverage of the bias data that flags a rollout leaving it;
         ``bias_rms`` per branch: the rms of the training tests' bias in m/s^2 (the learnt target
-        times its scale), which bounds the band (:meth:`bias_spread`); ``bias_range`` per branch: the
-        learnt target's span over the training tests' points, 0 included (:meth:`bias_range`).
+        times its scale), which bounds the band (:meth:`bias_spread`); ``target_rms`` per branch: the rms
+        of the learnt target itself, the band's bound in its units (:meth:`target_spread`);
+        ``bias_range`` per branch: the learnt target's span over the training tests' points, 0
+        included (:meth:`bias_range`).
     companions : list of (Condition, Pulse)
         Every test's condition and its companion CAE run.
     categories : dict of str to list of str
@@ -208,6 +210,11 @@ class FittedModel:
         """Rms of the training tests' bias on ``branch`` (m/s^2), the bound on a relative target's band
         (:func:`crashfuse.method.rollout.predict`); ``inf`` for a file fitted before it was stored."""
         return float(self.ranges.get("bias_rms", {}).get(branch, np.inf))
+
+    def target_spread(self, branch: str) -> float:
+        """Rms of the training tests' learnt target on ``branch`` (its units: m/s^2, or dimensionless for a
+        relative target), a bound on the band; ``inf`` for a file fitted before it was stored."""
+        return float(self.ranges.get("target_rms", {}).get(branch, np.inf))
 
     def bias_range(self, branch: str) -> tuple[float, float]:
         """(lo, hi): the learnt target's span over the training tests' bias points of ``branch``, 0 (no
@@ -368,7 +375,7 @@ def _load(kind: str, cls, path):
 
 def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
               surrogate: CAESurrogate | None = None, physics: PhysicsFirst | None = None,
-              pooled: dict | None = None) -> FittedModel:
+              pooled: dict | None = None, chain: MountResonance | None = None) -> FittedModel:
     """Fit the CAE surrogate (unless given) and one GMM-GP bias model per branch.
 
     Parameters
@@ -393,6 +400,9 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
     pooled : dict of str to KrigingGP, optional
         Per branch, the pooled GP already fitted: :meth:`FittedModel.all_rows_gps` of another K's fit
         with the same holdout and settings (the same fit, so the result is identical and its cost saved).
+    chain : MountResonance, optional
+        With ``config.chain``, the measurement chain already fitted on this fit's training tests
+        (:attr:`FittedModel.chain` of another K's fit with the same holdout); otherwise fitted here.
 
     Returns
     -------
@@ -423,7 +433,10 @@ def fit_model(campaign: Campaign, config: MethodConfig, *, holdout=None,
     if physics is not None and (physics.tests != sorted(train) or config.effects not in (AUTO, physics.effects)):
         raise ValueError(f"physics fitted on {physics.tests} with {physics.effects}, this fit trains on "
                          f"{sorted(train)} with {config.effects}")
-    chain = fit_chain(campaign, train) if config.chain else None
+    if not config.chain:
+        chain = None
+    elif chain is None:
+        chain = fit_chain(campaign, train)
     curves = training_curves(campaign, train, surrogate, physics)
     data = training_data(campaign, train, config, surrogate, physics, curves, chain)
     seeds = np.random.RandomState(config.random_state).randint(SEED_MAX, size=len(BRANCHES))
@@ -540,6 +553,7 @@ def _ranges(campaign: Campaign, train: list, data: BiasData, curves: dict) -> di
     x_max = {b: float(data.branch(b).X[:, 0].max()) if data.branch(b).y.size else 0.0 for b in BRANCHES}
     out = {"condition": (tr.min(axis=0), tr.max(axis=0)), "cae_condition": (cae.min(axis=0), cae.max(axis=0)),
            "x_max": x_max, "bias_rms": {b: _bias_rms(data.branch(b)) for b in BRANCHES},
+           "target_rms": {b: _target_rms(data.branch(b)) for b in BRANCHES},
            "bias_range": {b: _bias_range(data.branch(b)) for b in BRANCHES},
            "rebound_ratio": _rebound_ratios(campaign, curves)}
     if data.inputs == "state":
@@ -564,6 +578,11 @@ def _rebound_ratios(campaign: Campaign, curves: dict) -> list:
 def _bias_rms(d) -> float:
     """Rms of one branch's bias data in m/s^2 (0 without data)."""
     return float(np.sqrt(np.mean((d.y * d.scale) ** 2))) if d.y.size else 0.0
+
+
+def _target_rms(d) -> float:
+    """Rms of one branch's learnt target in its units (0 without data)."""
+    return float(np.sqrt(np.mean(d.y**2))) if d.y.size else 0.0
 
 
 def _bias_range(d) -> tuple[float, float]:

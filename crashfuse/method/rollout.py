@@ -384,19 +384,27 @@ def _drawn_bias(model, branch, cond, mean: _BranchBias | None, path: Trajectory,
     g = est.sample_functions(X, n_samples, rng.randint(2**31 - 1))
     dev = g - est.predict(X)[None, :]
     sd = dev.std(axis=0) * _scale(model, curve, branch, x)
-    dev *= np.minimum(1.0, _bound(model, branch) / np.maximum(sd, np.finfo(float).tiny))
+    dev *= np.minimum(1.0, _bound(model, curve, branch, x) / np.maximum(sd, np.finfo(float).tiny))
     return _BranchBias(mean.x_hi, mean.mean_table, mean.v_grid, dev)
 
 
-def _bound(model, branch) -> float:
-    """The most the band's std may spread the bias of ``branch`` (m/s^2): for a relative target the
-    training tests' bias rms (:meth:`~crashfuse.method.model.FittedModel.bias_spread`), else none.
+def _bound(model, curve, branch, x) -> np.ndarray:
+    """The most the band's std may spread the bias of ``branch`` at its coordinate ``x`` (m/s^2): for a
+    relative target the training tests' bias rms, in m/s^2
+    (:meth:`~crashfuse.method.model.FittedModel.bias_spread`) and in the target's units times the
+    scale at ``x`` (:meth:`~crashfuse.method.model.FittedModel.target_spread`), whichever is smaller;
+    else none.
 
     A relative target's GP serves the small CAE decelerations, where noise is a large fraction, and
     the peak alike; its std times a 30 g pulse spread a model fitted to noise over a 20 g wide band.
-    The ``paper`` inputs learn the bias in m/s^2, as published, and are left alone.
+    The m/s^2 rms is the fast tests' bias, which at a slow test's 2 g onset is the whole pulse: a GP
+    fitted to smooth bias data (the tests' body decelerations, :mod:`crashfuse.method.chain`) took a
+    near-infinite variance there and spread an 8 mph test's draws by +-10 g at contact. The ``paper``
+    inputs learn the bias in m/s^2, as published, and are left alone.
     """
-    return model.bias_spread(branch) if model.relative else np.inf
+    if not model.relative:
+        return np.full(np.shape(x), np.inf)
+    return np.minimum(model.bias_spread(branch), model.target_spread(branch) * _scale(model, curve, branch, x))
 
 
 def _rebound_bounded(model, curve, bias: _BranchBias | None, path: Trajectory) -> _BranchBias | None:
@@ -469,7 +477,7 @@ def decel_scatter(model, curve, path: Trajectory, cond) -> np.ndarray:
         if est is None or not on.any():
             continue
         sd = est.scatter_std(model.features(branch, x, v, cond, curve)) * _scale(model, curve, branch, x)
-        out[on] = np.minimum(sd, _bound(model, branch))
+        out[on] = np.minimum(sd, _bound(model, curve, branch, x))
     return out
 
 
