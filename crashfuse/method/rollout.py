@@ -383,16 +383,17 @@ def _drawn_bias(model, branch, cond, mean: _BranchBias | None, path: Trajectory,
     est = model.bias_[branch]
     g = est.sample_functions(X, n_samples, rng.randint(2**31 - 1))
     dev = g - est.predict(X)[None, :]
-    sd = dev.std(axis=0) * _scale(model, curve, branch, x)
-    dev *= np.minimum(1.0, _bound(model, curve, branch, x) / np.maximum(sd, np.finfo(float).tiny))
+    scale = _scale(model, curve, branch, x)
+    sd = dev.std(axis=0) * scale
+    dev *= np.minimum(1.0, _bound(model, branch, scale) / np.maximum(sd, np.finfo(float).tiny))
     return _BranchBias(mean.x_hi, mean.mean_table, mean.v_grid, dev)
 
 
-def _bound(model, curve, branch, x) -> np.ndarray:
-    """The most the band's std may spread the bias of ``branch`` at its coordinate ``x`` (m/s^2): for a
-    relative target the training tests' bias rms, in m/s^2
-    (:meth:`~crashfuse.method.model.FittedModel.bias_spread`) and in the target's units times the
-    scale at ``x`` (:meth:`~crashfuse.method.model.FittedModel.target_spread`), whichever is smaller;
+def _bound(model, branch, scale) -> np.ndarray:
+    """The most the band's std may spread the bias of ``branch`` where the learnt bias has ``scale``
+    (m/s^2 per unit, :func:`_scale`): for a relative target the training tests' bias rms, in m/s^2
+    (:meth:`~crashfuse.method.model.FittedModel.bias_spread`) and in the target's units times
+    ``scale`` (:meth:`~crashfuse.method.model.FittedModel.target_spread`), whichever is smaller;
     else none.
 
     A relative target's GP serves the small CAE decelerations, where noise is a large fraction, and
@@ -403,8 +404,8 @@ def _bound(model, curve, branch, x) -> np.ndarray:
     inputs learn the bias in m/s^2, as published, and are left alone.
     """
     if not model.relative:
-        return np.full(np.shape(x), np.inf)
-    return np.minimum(model.bias_spread(branch), model.target_spread(branch) * _scale(model, curve, branch, x))
+        return np.full(np.shape(scale), np.inf)
+    return np.minimum(model.bias_spread(branch), model.target_spread(branch) * scale)
 
 
 def _rebound_bounded(model, curve, bias: _BranchBias | None, path: Trajectory) -> _BranchBias | None:
@@ -476,8 +477,9 @@ def decel_scatter(model, curve, path: Trajectory, cond) -> np.ndarray:
         est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
         if est is None or not on.any():
             continue
-        sd = est.scatter_std(model.features(branch, x, v, cond, curve)) * _scale(model, curve, branch, x)
-        out[on] = np.minimum(sd, _bound(model, curve, branch, x))
+        scale = _scale(model, curve, branch, x)
+        sd = est.scatter_std(model.features(branch, x, v, cond, curve)) * scale
+        out[on] = np.minimum(sd, _bound(model, branch, scale))
     return out
 
 
