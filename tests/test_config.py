@@ -27,7 +27,7 @@ def test_the_two_modes_differ_where_the_method_says():
         "relative", "zero", True, True, True, True)
 
 
-def test_a_default_config_hands_the_bias_model_its_own_defaults():
+def test_a_default_state_config_hands_the_bias_model_its_defaults_with_the_state_theta_bound():
     config = MethodConfig(k=3, inputs="state")
     own = GMMGPBias(n_clusters=3, trend="zero", pooled=True, theta_bounds=(0.1, 1e3)).get_params()
     assert GMMGPBias(n_clusters=3, **config.bias_params()).get_params() == own
@@ -53,6 +53,8 @@ def test_a_default_config_hands_the_bias_model_its_own_defaults():
     (dict(max_condition_points=0), "max_condition_points"),
     (dict(theta_max_candidates=()), "theta_max_candidates"),
     (dict(theta_max_candidates=(1.0, -2.0)), "theta_max_candidates"),
+    (dict(theta_max_candidates="10"), "theta_max_candidates"),
+    (dict(theta_max_candidates=(1.0, True)), "theta_max_candidates"),
     (dict(theta_min=0.0), "theta_min"),
     (dict(theta_min="small"), "theta_min"),
     (dict(theta_min=10.0, theta_max_candidates=(1.0, 10.0)), "theta_min"),

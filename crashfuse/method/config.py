@@ -255,10 +255,6 @@ def _positive_float(name: str, value) -> float:
 
 
 def _positive_floats(name: str, values) -> tuple:
-    try:
-        out = tuple(float(v) for v in values)
-    except (TypeError, ValueError):
-        out = ()
-    if not out or not all(np.isfinite(v) and v > 0 for v in out):
+    if isinstance(values, (str, bytes)) or not np.iterable(values) or not len(values := tuple(values)):
         raise InputError(f"expected a non-empty sequence of positive numbers, got {values!r}", field=name)
-    return out
+    return tuple(_positive_float(name, v) for v in values)
