@@ -465,6 +465,22 @@ def test_scatter_is_wider_where_the_held_out_tests_scatter_more():
     np.testing.assert_allclose(far, gp.scatter_var_, rtol=0.1)
 
 
+def test_the_held_out_errors_need_a_band_wide_where_the_tests_scatter_and_narrow_where_they_agree():
+    """Tests offset on x < 1 only: the variance a held-out test's errors need near a point is at least
+    the scatter there (the latent variance added back), wide where the tests scatter, narrow where they
+    agree; a GP fitted without tests has no such bound."""
+    rng = np.random.default_rng(0)
+    n_tests, per = 8, 40
+    x = np.tile(np.linspace(0.0, 2.0, per), n_tests)
+    y = np.sin(6 * x) + np.where(x < 1.0, np.repeat(0.4 * rng.standard_normal(n_tests), per), 0.0)
+    groups = np.repeat(np.arange(n_tests), per)
+    gp = KrigingGP(trend="zero", calibrate_variance=True, random_state=0).fit(x[:, None], y, groups)
+    at = np.array([[0.4], [1.7]])
+    need = gp.held_out_var_at(at)
+    assert np.all(need >= gp.scatter_var_at(at)) and need[1] < 0.1 * need[0]
+    assert np.all(np.isinf(KrigingGP(random_state=0).fit(x[:, None], y).held_out_var_at(at)))
+
+
 def test_scatter_of_a_model_fitted_before_it_existed_is_a_clear_error(two_regimes):
     import copy
 

@@ -105,16 +105,19 @@ def test_true_bias_reproduces_the_test(campaign, surrogate):
 
 class KnownGP:
     """A zero-mean GP on the branch coordinate: sigma^2 exp(-(x - x')^2 / (2 l^2)), exact draws,
-    and a constant test-to-test scatter std."""
+    a constant test-to-test scatter std and a constant std its held-out errors need (none: inf)."""
 
-    def __init__(self, sigma, length, scatter=0.0):
-        self.sigma, self.length, self.scatter = sigma, length, scatter
+    def __init__(self, sigma, length, scatter=0.0, held_out=np.inf):
+        self.sigma, self.length, self.scatter, self.held_out = sigma, length, scatter, held_out
 
     def predict(self, X):
         return np.zeros(len(X))
 
     def scatter_std(self, X):
         return np.full(len(X), self.scatter)
+
+    def held_out_std(self, X):
+        return np.full(len(X), self.held_out)
 
     def std(self, x):
         return np.full(np.shape(x), self.sigma)
@@ -172,6 +175,33 @@ def test_relative_scatter_scales_with_the_floored_cae_decel(campaign, model):
     s = pred.mean_path.s[0, on]
     cond = rel.condition(**pred.condition)
     np.testing.assert_allclose(pred.decel_scatter[on], 0.1 * bias_scale(rel.cae_curve(cond).loading(s)), rtol=1e-3)
+
+
+def test_a_relative_band_is_bounded_by_what_the_held_out_errors_need(campaign, model):
+    """A latent std 20 times what the tests' held-out errors need (a GP fitted to smooth data, its
+    variance unbounded by them) is cut to that need, scatter and draws alike; a need above the
+    latent std leaves the band alone, and so does a condition beyond the tests."""
+    from crashfuse.method.projection import bias_scale
+    config = dataclasses.replace(model.config, target="relative", use_companion=True)
+    early = None
+    for sigma, held_out, expected in ((1.0, 0.05, 0.05), (0.05, 1.0, 0.05)):
+        known = dataclasses.replace(model, bias_={"loading": KnownGP(sigma, 0.05, 0.1, held_out), "unloading": None},
+                                    config=config)
+        pred = _at(known, campaign.pulses["T08"], n_samples=4000, random_state=3)
+        early = (pred.time >= 0.001) & (pred.time <= 0.005)
+        half = 0.5 * (pred.decel_latent_hi - pred.decel_latent_lo)[early]
+        scale = bias_scale(pred.cae_decel[early])
+        np.testing.assert_allclose(half, 1.959964 * expected * scale, rtol=0.1)
+        assert np.all(pred.decel_scatter[early] <= min(0.1, held_out) * scale * (1 + 1e-9))
+    # Beyond the tests' speeds their held-out errors say nothing: the GP's own spread stays.
+    test, v_out = campaign.pulses["T08"], 1.1 * model.ranges["condition"][1][0]
+    known = dataclasses.replace(model, bias_={"loading": KnownGP(0.2, 0.05, 0.0, 0.01), "unloading": None},
+                                config=config)
+    pred = predict(known, v_out, test.front_weight, test.rear_weight, test.meta["powertrain"], test.meta["drive"],
+                   n_samples=4000, random_state=3)
+    early = (pred.time >= 0.001) & (pred.time <= 0.005)
+    half = 0.5 * (pred.decel_latent_hi - pred.decel_latent_lo)[early]
+    assert pred.extrapolation["v0"] and np.all(half > 5 * 1.959964 * 0.01 * bias_scale(pred.cae_decel[early]))
 
 
 def test_fitted_scatter_recovers_offsets_between_replicates():

@@ -143,10 +143,13 @@ def scatter_needs(eta, bounds, hyp, cond, max_folds=SCATTER_MAX_FOLDS, max_rows=
     needs : ndarray, shape (n_needs,)
     rows : ndarray of int, shape (n_needs,)
         The conditioning row of each need.
+    spreads : ndarray, shape (n_needs,)
+        ``(e / 1.96)^2``: the whole variance each held-out point needs inside a 95 % band, latent and
+        scatter together (the need with the latent variance added back).
     """
     Z_hyp, u_hyp, H_hyp, g_hyp = hyp
     Z, u, H, groups = cond
-    needs, rows = [], []
+    needs, rows, spreads = [], [], []
     names = np.unique(groups)
     blocks = np.arange(len(names)) % (len(names) if max_folds is None else max_folds)
     for block in np.unique(blocks):
@@ -164,6 +167,9 @@ def scatter_needs(eta, bounds, hyp, cond, max_folds=SCATTER_MAX_FOLDS, max_rows=
         mean, r = predictive_mean(Z[rest], Z[out], H[out], theta, beta, alpha)
         V, W = variance_parts(r, H[out], L, Ht, LM)
         var = latent_variance(V, W) * sigma2 * variance_factor(e, Z_hyp[keep], u_hyp[keep], H_hyp[keep], g_hyp[keep])
-        needs.append((u[out] - mean) ** 2 / Z95**2 - var)
+        spreads.append((u[out] - mean) ** 2 / Z95**2)
+        needs.append(spreads[-1] - var)
         rows.append(np.flatnonzero(out))
-    return (np.concatenate(needs), np.concatenate(rows)) if needs else (np.empty(0), np.empty(0, int))
+    if not needs:
+        return np.empty(0), np.empty(0, int), np.empty(0)
+    return np.concatenate(needs), np.concatenate(rows), np.concatenate(spreads)

@@ -146,6 +146,9 @@ class KrigingGP(RegressorMixin, BaseEstimator):
     scatter_need_, scatter_Z_, scatter_tests_ : ndarray, ndarray, int
         The held-out needs (normalised units, shape (n_needs,)), their standardised inputs
         (n_needs, d) and the number of tests they come from (only with the scatter estimated).
+    held_out_spread_ : ndarray, shape (n_needs,)
+        ``(e / 1.96)^2`` of the same held-out points (normalised units): the need with the latent
+        variance added back (:meth:`held_out_var_at`).
     cv_scores_ : dict of float to float
         Grouped leave-one-group-out log density per candidate bound (empty without groups).
     n_features_in_ : int
@@ -307,10 +310,10 @@ class KrigingGP(RegressorMixin, BaseEstimator):
             return
         bounds = log_bounds(self.n_features_in_, self.theta_bounds, self.theta_max_, self.nugget_bounds)
         cond = (self.Z_condition_, u_cond, self._design(self.Z_condition_), g_cond)
-        need, rows = scatter_needs(eta, bounds, hyp, cond)
+        need, rows, spread = scatter_needs(eta, bounds, hyp, cond)
         if need.size:
             self.scatter_var_ = max(0.0, float(np.quantile(need, 0.95))) * self.y_std_**2
-            self.scatter_need_, self.scatter_Z_ = need, self.Z_condition_[rows]
+            self.scatter_need_, self.scatter_Z_, self.held_out_spread_ = need, self.Z_condition_[rows], spread
             self.scatter_tests_ = len(np.unique(g_cond[rows]))
 
     def scatter_var_at(self, X):
@@ -332,14 +335,38 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         """
         if "scatter_need_" not in self.__dict__:
             return np.full(len(X), self.scatter_var_)
+        return np.maximum(0.0, self._near_quantile(self.scatter_need_, X)) * self.y_std_**2
+
+    def held_out_var_at(self, X):
+        """The variance a new test's errors need near ``X`` (y units)^2: ``(e / 1.96)^2``'s 95 % quantile.
+
+        ``e`` are the errors of the refits without each test (``held_out_spread_``), weighted near ``X``
+        as :meth:`scatter_var_at` weighs the needs: the whole band (latent and scatter) that holds 95 %
+        of a left-out test's points there. ``inf`` where the refits were not made (no scatter estimated,
+        or a model fitted before they were kept).
+
+        Parameters
+        ----------
+        X : array_like, shape (m, d)
+
+        Returns
+        -------
+        ndarray, shape (m,)
+        """
+        if "held_out_spread_" not in self.__dict__:
+            return np.full(len(X), np.inf)
+        return self._near_quantile(self.held_out_spread_, X) * self.y_std_**2
+
+    def _near_quantile(self, values, X):
+        """The 95 % quantile of ``values`` (one per held-out point) weighted near ``X``, shape (m,)."""
         k = correlation(self._standardised(X), self.scatter_Z_, self.theta_)  # (m, needs)
-        k /= len(self.scatter_need_) / self.scatter_tests_
-        w = k + np.maximum(0.0, 1.0 - k.sum(axis=1, keepdims=True)) / len(self.scatter_need_)
-        order = np.argsort(self.scatter_need_)
+        k /= len(values) / self.scatter_tests_
+        w = k + np.maximum(0.0, 1.0 - k.sum(axis=1, keepdims=True)) / len(values)
+        order = np.argsort(values)
         cw = np.cumsum(w[:, order], axis=1)
         cw /= cw[:, -1:]
         idx = np.minimum((cw < 0.95).sum(axis=1), len(order) - 1)
-        return np.maximum(0.0, self.scatter_need_[order][idx]) * self.y_std_**2
+        return values[order][idx]
 
     # ------------------------------------------------------- fitted-model scores
     @limit_blas

@@ -460,6 +460,18 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         w = self._weights(X)
         return np.sqrt(np.sum(w * np.stack([gp.scatter_var_at(X) for gp in self.gps_], axis=1), axis=1))
 
+    def held_out_std(self, X):
+        """The std a new test's errors need at ``X`` (y units), shape (m,): a bound on the band.
+
+        Each GP's :meth:`KrigingGP.held_out_var_at` (the 95 % level of its refits' held-out errors near
+        ``X``), combined as :meth:`scatter_std` combines the scatter; ``inf`` for a GP without them.
+        """
+        X = check_array(X)
+        if self.pooled_gp_ is not None:
+            return np.sqrt(self.pooled_gp_.held_out_var_at(X))
+        w, var = self._weights(X), np.stack([gp.held_out_var_at(X) for gp in self.gps_], axis=1)
+        return np.sqrt(np.sum(np.where(w > 0, w * var, 0.0), axis=1))  # a GP of no weight adds nothing, inf or not
+
     @limit_blas
     def sample_functions(self, X, n_samples=1, random_state=None):
         """Joint draws of the bias function at ``X``, combined by the assignment rule.

@@ -293,10 +293,7 @@ class FittedModel:
             training test was (:func:`state_outside`) - per-column ranges miss a low speed at a
             large crush; ``any``.
         """
-        lo, hi = self.ranges["condition"]
-        x = cond.array()
-        flags = {name: bool(x[i] < lo[i] * (1 - _MATCH_RTOL) or x[i] > hi[i] * (1 + _MATCH_RTOL))
-                 for i, name in enumerate(CONDITION_COLUMNS)}
+        flags = self.condition_outside(cond)
         contact = mean_traj.branch[0] == Trajectory.UNLOADING  # after separation u grows in free flight
         u = (mean_traj.s_max[0] - mean_traj.s[0])[contact]
         flags["crush"] = bool(mean_traj.s_max[0] > (1 + _REACH_TOL) * self.x_max("loading"))
@@ -306,6 +303,14 @@ class FittedModel:
                                  for b in BRANCHES if self.ranges["state"].get(b) is not None)
         flags["any"] = any(flags.values())
         return flags
+
+    def condition_outside(self, cond: Condition) -> dict:
+        """Per condition column (``v0``, ``front_weight``, ``rear_weight``): whether ``cond`` lies outside
+        the training tests' range."""
+        lo, hi = self.ranges["condition"]
+        x = cond.array()
+        return {name: bool(x[i] < lo[i] * (1 - _MATCH_RTOL) or x[i] > hi[i] * (1 + _MATCH_RTOL))
+                for i, name in enumerate(CONDITION_COLUMNS)}
 
     def save(self, path: str | os.PathLike, surrogate_file: str | os.PathLike | None = None) -> None:
         """Write the model file atomically (:mod:`crashfuse.io.persist`, kind ``model``).

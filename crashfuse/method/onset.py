@@ -244,6 +244,10 @@ class OnsetCorrectedBias(RegressorMixin, BaseEstimator):
             var = var + self._faded(X, lambda t: self.onset_gp_.predict(t, return_std=True, include_noise=True)[1]) ** 2
         return np.sqrt(var)
 
+    def held_out_std(self, X):
+        """The base model's :meth:`GMMGPBias.held_out_std`."""
+        return self.base_.held_out_std(X)
+
     def predict_responsibilities(self, X):
         """The base model's mixture responsibilities, shape (m, len(gps_))."""
         return self.base_.predict_responsibilities(X)
