@@ -452,13 +452,10 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         ndarray, shape (m,)
         """
         X = check_array(X)
-        if self.pooled_gp_ is not None:
-            return np.sqrt(self.pooled_gp_.scatter_var_at(X))
-        if not all(hasattr(gp, "scatter_var_") for gp in self.gps_):
+        if self.pooled_gp_ is None and not all(hasattr(gp, "scatter_var_") for gp in self.gps_):
             raise InputError("this bias model was fitted before the test-to-test scatter existed: refit it, or "
                              "ask for the latent band (band 'latent')", field="band")
-        w = self._weights(X)
-        return np.sqrt(np.sum(w * np.stack([gp.scatter_var_at(X) for gp in self.gps_], axis=1), axis=1))
+        return self._combined_std(X, lambda gp: gp.scatter_var_at(X))
 
     def held_out_std(self, X):
         """The std a new test's errors need at ``X`` (y units), shape (m,): a bound on the band.
@@ -467,10 +464,15 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
         ``X``), combined as :meth:`scatter_std` combines the scatter; ``inf`` for a GP without them.
         """
         X = check_array(X)
+        return self._combined_std(X, lambda gp: gp.held_out_var_at(X))
+
+    def _combined_std(self, X, var_at):
+        """``sqrt`` of the GPs' variances ``var_at(gp)`` (m,) at ``X``: the pooled GP's, else weighted by
+        :meth:`_weights` (a GP of no weight adds nothing, even an infinite variance)."""
         if self.pooled_gp_ is not None:
-            return np.sqrt(self.pooled_gp_.held_out_var_at(X))
-        w, var = self._weights(X), np.stack([gp.held_out_var_at(X) for gp in self.gps_], axis=1)
-        return np.sqrt(np.sum(np.where(w > 0, w * var, 0.0), axis=1))  # a GP of no weight adds nothing, inf or not
+            return np.sqrt(var_at(self.pooled_gp_))
+        w, var = self._weights(X), np.stack([var_at(gp) for gp in self.gps_], axis=1)
+        return np.sqrt(np.sum(np.where(w > 0, w * var, 0.0), axis=1))
 
     @limit_blas
     def sample_functions(self, X, n_samples=1, random_state=None):
