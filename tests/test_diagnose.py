@@ -347,7 +347,8 @@ def test_the_shrink_tables_gmm_gpr_rows_are_the_same_on_any_number_of_workers(sm
 @pytest.mark.xdist_group("small_damping")
 def test_the_gmm_gpr_rows_from_given_fold_models_are_those_it_fits(small_damping):
     """Fold models fitted elsewhere (the workflow's, with the scatter refits) give the shrink table it fits
-    itself: the rows score the mean, which the scatter does not move. Models of another K are refused."""
+    itself (three tests: a fold's two training tests give no refits, so no held-out bound either). Models
+    of another K are refused."""
     small, tests, surrogate, kw, own = small_damping
     said = []
     folds = {t: fit_model(small, MethodConfig(k=1, inputs="state"), holdout=t, surrogate=surrogate) for t in tests}

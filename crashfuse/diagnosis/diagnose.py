@@ -155,9 +155,10 @@ def diagnose(campaign: Campaign, effects=EFFECTS, threshold: float = THRESHOLD, 
     fold_models : dict of str to FittedModel, optional
         The GMM-GPR alone's fold models, each test's fitted without it with ``k`` and ``inputs`` (the
         workflow's folds): its rows are rolled out from them instead of refitted, and the CAE + effects
-        + GMM-GPR folds take their method settings. Default: both fitted here with the input mode's
-        defaults. The mean, all the rows score, does not depend on the test-to-test scatter, which
-        neither needs.
+        + GMM-GPR folds take their method settings but not their scatter refits (the cost of a fold
+        fit, twice and more; on `paper` they move the row's Monte Carlo mean by 0.0006 ISO at most:
+        docs/decisions.md, section 67). Default: both fitted here with the input mode's defaults,
+        neither with the refits.
     regions : bool
         Locate the gap (:func:`crashfuse.diagnosis.gap.locate_gap`, with the same ``k``); needs two tests.
     n_jobs : int
@@ -500,7 +501,7 @@ def _shrink(campaign, case, preds, fits, config, fold_models, n_samples, surroga
 
 def _residual_config(k: int, inputs: str, random_state: int, fold_models: dict | None) -> MethodConfig:
     """The GMM-GPR residual model's settings: the fold models' (all alike), else the input mode's defaults
-    on the test's own CAE run; without the scatter refits (the rows score the mean only)."""
+    on the test's own CAE run; without the scatter refits (their cost; see :func:`diagnose`)."""
     if not fold_models:
         return MethodConfig(k=k, inputs=inputs, random_state=random_state, use_companion=True, estimate_scatter=False)
     configs = {dataclasses.replace(m.config, estimate_scatter=False) for m in fold_models.values()}
