@@ -204,6 +204,7 @@ def test_auto_copies_the_candidate_with_the_smallest_inner_error(campaign, resul
         best = candidates.iloc[choose(candidates.inner_error.tolist()).index]
         record = read_fold_json(out / "auto" / "auto" / test_id / f"{test_id}.fold.json")
         assert record.model == "auto" and record.settings["chosen"] == f"{best.inputs} {best.model}"
+        assert cov[(cov.test_id == test_id) & (cov.inputs == "auto")].chosen.tolist() == [record.settings["chosen"]]
         assert record.settings["candidates"].count(":") == len(candidates)
         chosen = iso[(iso.test_id == test_id) & (iso.inputs == best.inputs) & (iso.model == best.model)]
         auto = iso[(iso.test_id == test_id) & (iso.inputs == "auto") & (iso.model == "auto")]

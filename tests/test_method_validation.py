@@ -50,7 +50,7 @@ def test_losses_worst_margin_and_coverage_by_hand():
     rows += [(t, "K1", w, s) for (t, w), s in k1.items()] + [(t, "auto", w, s) for (t, w), s in auto.items()]
     coverage = pd.DataFrame({"test_id": ["T01", "T02", "T01", "T02"], "inputs": "state",
                              "model": ["K1", "K1", "auto", "auto"], "coverage": [0.9, 0.7, 1.0, 1.0],
-                             "coverage_latent": [0.5, 0.3, 0.2, 0.4]})
+                             "coverage_latent": [0.5, 0.3, 0.2, 0.4], "chosen": [None, None, "state K2", "state K1"]})
     got = {r["model"]: r for r in mv.score_rows(_iso_table(rows), coverage)}
     assert list(got) == ["K1", "auto"]
     r = got["K1"]
@@ -59,6 +59,7 @@ def test_losses_worst_margin_and_coverage_by_hand():
     assert r["iso_0_60"] == pytest.approx((0.68 + 0.389) / 2) and r["cae_0_20"] == pytest.approx(0.75)
     assert (r["coverage"], r["coverage_latent"]) == (pytest.approx(0.8), pytest.approx(0.4))
     assert (got["auto"]["lost_0_01"], got["auto"]["worst_margin"]) == (0, pytest.approx(0.05))
+    assert (r["chosen"], got["auto"]["chosen"]) == ("", "state K2 (1), state K1 (1)")  # auto's choice per fold
 
     lost = mv.lost_windows(_iso_table(rows).assign(phase=lambda f: f["overall"] / 2))
     assert lost[["model", "test_id", "window_ms"]].values.tolist() == [["K1", "T02", "0-20"]]

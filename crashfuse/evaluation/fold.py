@@ -36,7 +36,7 @@ COVERAGE_WINDOW_MS = (0, 60)
 AUTO_INPUTS = ("state",)
 COVERAGE_COLUMNS = ["test_id", "inputs", "model", "coverage", "coverage_latent", "n_points", "extrapolation",
                     "n_gps_loading", "n_gps_unloading", "cluster_switches", "fit_s", "predict_s", "inner_error",
-                    "effects_fitted"]
+                    "effects_fitted", "chosen"]
 _FACT_KEYS = ("test_id", "inputs", "k", "model", "seed", "campaign", "settings", "metrics")
 
 
@@ -250,7 +250,7 @@ def score_fold(campaign, test_id: str, frame, facts: dict, windows=WINDOWS, cae=
                     n_gps_unloading=int(metrics["n_gps_unloading"]),
                     cluster_switches=int(metrics["cluster_switches"]), fit_s=metrics["fit_seconds"],
                     predict_s=metrics["predict_seconds"], inner_error=metrics.get("inner_error"),
-                    effects_fitted=facts["settings"].get("effects_fitted"))
+                    effects_fitted=facts["settings"].get("effects_fitted"), chosen=facts["settings"].get("chosen"))
     record = FoldRecord(
         test_id=test_id, inputs=mode, k=facts["k"], seed=facts["seed"], campaign=facts["campaign"],
         conditions={"v0_mps": test.v0, "front_weight_kg": test.front_weight, "rear_weight_kg": test.rear_weight,

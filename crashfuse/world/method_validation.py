@@ -282,7 +282,8 @@ def score_rows(iso: pd.DataFrame, coverage: pd.DataFrame) -> list[dict]:
         ``n_test_windows``, ``lost_<m>`` (test-windows where the model scores below CAE by more than
         m, for m in :data:`LOSS_MARGINS`), ``worst_margin`` (the most negative model - CAE) with
         ``worst_test`` and ``worst_window``, ``coverage`` and ``coverage_latent`` (fold means),
-        ``effects`` (the hybrid's effects fitted per fold, :func:`_effects_count`).
+        ``effects`` (the hybrid's effects fitted per fold) and ``chosen`` (the ``auto`` model's candidate per
+        fold), each counted by :func:`_fold_counts`.
     """
     windows = list(dict.fromkeys(iso["window_ms"]))
     rows = []
@@ -302,18 +303,18 @@ def score_rows(iso: pd.DataFrame, coverage: pd.DataFrame) -> list[dict]:
         row.update(worst_margin=float(margin[worst]), worst_test=worst[0], worst_window=worst[1])
         cov = coverage[(coverage["inputs"] == mode) & (coverage["model"] == model)]
         row.update(coverage=cov["coverage"].mean(), coverage_latent=cov["coverage_latent"].mean(),
-                   effects=_effects_count(cov))
+                   effects=_fold_counts(cov, "effects_fitted"), chosen=_fold_counts(cov, "chosen"))
         rows.append(row)
     return rows
 
 
-def _effects_count(coverage: pd.DataFrame) -> str:
-    """The hybrid's effects fitted over a model's folds, most frequent first: ``damping (9), none (2)``
-    (empty without the hybrid, or in a coverage file written before the column)."""
-    if "effects_fitted" not in coverage:
+def _fold_counts(coverage: pd.DataFrame, column: str) -> str:
+    """A per-fold column of a model's ``coverage.csv`` rows counted, most frequent first: ``damping (9), none (2)``
+    (empty where no fold has it, or in a coverage file written before the column)."""
+    if column not in coverage:
         return ""
-    counts = coverage["effects_fitted"].dropna().value_counts(sort=False).sort_values(ascending=False, kind="stable")
-    return ", ".join(f"{effects} ({n})" for effects, n in counts.items())
+    counts = coverage[column].dropna().value_counts(sort=False).sort_values(ascending=False, kind="stable")
+    return ", ".join(f"{value} ({n})" for value, n in counts.items())
 
 
 def lost_windows(iso: pd.DataFrame, margin: float = LOSS_MARGINS[-1]) -> pd.DataFrame:
