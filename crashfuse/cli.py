@@ -535,8 +535,9 @@ def _add_method_options(s) -> None:
                    help="predict a test's condition with its companion CAE run instead of the surrogate "
                         "(default: the input mode's, paper no, state yes)")
     s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
-    s.add_argument("--cae-decel", action="store_true",
-                   help="add the CAE deceleration at each point (the crush stage) to the bias inputs")
+    s.add_argument("--cae-decel", choices=("none", "unloading", "both"), default=None,
+                   help="the branches whose bias inputs include the CAE deceleration at each point (the crush "
+                        "stage; default: the input mode's, paper none, state unloading)")
     s.add_argument("--n-grid", type=_positive, default=200, help="bias points per test per branch (default 200)")
     s.add_argument("--trend", choices=("zero", "constant", "linear"), default=None,
                    help="trend of the bias GPs (default: the input mode's, paper constant, state zero)")

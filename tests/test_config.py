@@ -25,6 +25,7 @@ def test_the_two_modes_differ_where_the_method_says():
         "absolute", "constant", False, False, False, False)
     assert (state.target, state.trend, state.pooled, state.onset, state.shrink, state.use_companion) == (
         "relative", "zero", True, True, True, True)
+    assert (paper.cae_decel, state.cae_decel) == ("none", "unloading")
 
 
 def test_a_default_state_config_hands_the_bias_model_its_defaults_with_the_state_theta_bound():
@@ -45,6 +46,8 @@ def test_a_default_state_config_hands_the_bias_model_its_defaults_with_the_state
     (dict(target="ratio"), "target"),
     (dict(trend="cubic"), "trend"),
     (dict(velocity="log"), "velocity"),
+    (dict(cae_decel=True), "cae_decel"),
+    (dict(cae_decel="loading"), "cae_decel"),
     (dict(pooled="yes"), "pooled"),
     (dict(inputs="paper", onset=True), "onset"),
     (dict(inputs="paper", shrink=True), "shrink"),

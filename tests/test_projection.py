@@ -261,7 +261,7 @@ def test_sqrt_velocity_column_round_trips(cae):
 def test_cae_decel_input_is_the_cae_curve_where_the_bias_is_measured(cae):
     from crashfuse.units import G0
     camp = _pair_campaign(cae)
-    data = bias_data(camp, ["T1"], inputs="state", n_grid=80, cae_decel=True)
+    data = bias_data(camp, ["T1"], inputs="state", n_grid=80, cae_decel="both")
     load, unload = data.loading, data.unloading
     assert load.columns[-1] == "cae_decel_g" and load.X.shape == (80, 6)
     np.testing.assert_allclose(load.X[:, -1] * G0, cae_loading(load.X[:, 0]), rtol=2e-3)
@@ -272,6 +272,33 @@ def test_cae_decel_input_is_the_cae_curve_where_the_bias_is_measured(cae):
     np.testing.assert_array_equal(load.X[:, :-1], plain.loading.X)  # the other inputs unchanged
     with pytest.raises(InputError, match="CAE deceleration"):
         bias_inputs(load.columns, [0.1], [4.0], V0, 900.0, 700.0)
+    only = bias_data(camp, ["T1"], inputs="state", n_grid=80, cae_decel="unloading")  # the state default
+    assert only.loading.columns == plain.loading.columns and only.unloading.columns == unload.columns
+    np.testing.assert_array_equal(only.unloading.X, unload.X)
+    with pytest.raises(InputError, match="cae_decel.*'loading'"):
+        bias_data(camp, ["T1"], inputs="state", cae_decel="loading")
+
+
+def test_a_record_ending_before_separation_widens_the_rebound_span_upwards_only(cae):
+    """The span the rollout holds a rebound to (:meth:`FittedModel.rebound_range`) comes from every
+    training test: one whose record ends while its spring-back still pushes gives its ratio so far, a
+    lower bound, so it may raise the span's top but not lower its bottom."""
+    from crashfuse.method.model import _rebound_ratios
+    curve = CAECurve.from_pulse(cae)
+    ratio = np.sqrt((200.0 * U_SEP_TEST) / (250.0 * U_SEP_CAE))  # linear spring-backs: work = peak * u_sep / 2
+
+    def ratios(unload, n_steps):
+        test = _pulse(cae_loading, unload, "T1", "test", "C1")
+        cut = Pulse(test.time[:n_steps], test.decel[:n_steps], V0, 900.0, 700.0, run_id="T1", source="test",
+                    meta=test.meta)
+        return _rebound_ratios(Campaign.from_pulses([cut, cae]), {"T1": curve})
+
+    assert ratios(TEST_UNLOAD, N_STEPS) == [pytest.approx(ratio, rel=0.02)]  # separated inside the record
+    t_stop = displacement_branches(cae).t_stop  # the test's loading is the CAE's
+    early = int(round(t_stop / DT)) + 40  # a few mm into the spring-back
+    assert ratios(TEST_UNLOAD, early) == [1.0]  # less work so far than the CAE's: no lower bound on the span
+    strong = unloading(2000.0, U_SEP_TEST)  # ten times the force: more than the CAE's whole work within mm
+    assert ratios(strong, early)[0] > 1.5
 
 
 @pytest.mark.parametrize("velocity", ["linear", "sqrt"])

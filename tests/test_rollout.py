@@ -285,7 +285,7 @@ def test_cae_decel_input_at_prediction_is_the_one_learnt_on(campaign, surrogate)
     from crashfuse.method.model import training_data
     from crashfuse.method.projection import column_velocity
 
-    config = MethodConfig(k=1, inputs="state", cae_decel=True, use_companion=True, **FAST)
+    config = MethodConfig(k=1, inputs="state", cae_decel="both", use_companion=True, **FAST)
     m = fit_model(campaign, config, surrogate=surrogate)
     assert m.columns["loading"][-1] == "cae_decel_g"
     data = training_data(campaign, ["T04"], config, surrogate)

@@ -15,7 +15,7 @@ import numpy as np
 from crashfuse.errors import InputError
 from crashfuse.method.hybrid import check_effects
 from crashfuse.method.mixture import GMMGPBias
-from crashfuse.method.projection import INPUTS, TARGETS, VELOCITY
+from crashfuse.method.projection import CAE_DECEL, INPUTS, TARGETS, VELOCITY
 
 ASSIGNMENTS = ("select", "blend")  # cluster rules of GMMGPBias
 TRENDS = ("zero", "constant", "linear")  # trends of KrigingGP
@@ -32,6 +32,7 @@ MODE_DEFAULTS = {
         "use_companion": False,  # as published: a condition's CAE curve from the surrogate G_a
         "chain": False,  # as published: the bias against the CAE pulse as it is
         "theta_min": _THETA_MIN,  # the bias model's own bound: an input may drop out entirely
+        "cae_decel": "none",  # as published: the inputs [x, v0, w_f, w_r]
     },
     "state": {
         # a rate effect scales the force, so the bias relative to the CAE deceleration; chosen by
@@ -61,6 +62,10 @@ MODE_DEFAULTS = {
         # to smooth bias data (the body decelerations), unbounded lengths took a near-infinite variance and
         # a mean that swung to slow tests and late crush like a polynomial (docs/decisions.md, section 66)
         "theta_min": 0.1,
+        # the CAE's deceleration is the unloading's stage (it falls monotonically to the CAE's separation):
+        # without it the unloading GP told the tests apart by their speed and predicted no correction at a
+        # held-out test; on loading it is not monotone and cost test-windows (docs/decisions.md, sections 38, 69)
+        "cae_decel": "unloading",
     },
 }
 
@@ -74,8 +79,8 @@ _BIAS_DEFAULTS = GMMGPBias().get_params()
 class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
-    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion``, ``chain`` and ``theta_min``
-    left as None take the input mode's value (``MODE_DEFAULTS``), so a config always holds the values the
+    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion``, ``chain``, ``theta_min`` and
+    ``cae_decel`` left as None take the input mode's value (``MODE_DEFAULTS``), so a config always holds the values the
     fit used. To change the input mode of a config, build a new one (``dataclasses.replace`` keeps the
     old mode's values).
 
@@ -90,9 +95,10 @@ class MethodConfig:
         Cluster rule of :class:`crashfuse.method.mixture.GMMGPBias`.
     extra_inputs : bool
         Append one-hot powertrain and drive to the bias inputs.
-    cae_decel : bool
-        Append the CAE deceleration at the bias point (g) to the bias inputs: the crush stage, and
-        the force an additive effect is a fraction of (docs/bias-model.md, "The CAE deceleration as an input").
+    cae_decel : {"none", "unloading", "both"} or None
+        The branches whose bias inputs end with the CAE deceleration at the bias point (g): the crush
+        stage, and the force an additive effect is a fraction of (docs/bias-model.md, "The CAE
+        deceleration as an input").
     n_grid : int or None
         Bias points per test per branch after thinning (>= 2; None: no thinning;
         :func:`crashfuse.method.projection.bias_data`).
@@ -149,7 +155,7 @@ class MethodConfig:
     inputs: str = "paper"
     assignment: str = "select"
     extra_inputs: bool = False
-    cae_decel: bool = False
+    cae_decel: str | None = None
     n_grid: int | None = 200
     use_companion: bool | None = None
     random_state: int = 0
@@ -181,7 +187,8 @@ class MethodConfig:
         _one_of("target", self.target, TARGETS)
         _one_of("trend", self.trend, TRENDS)
         _one_of("velocity", self.velocity, tuple(VELOCITY))
-        for name in ("extra_inputs", "cae_decel", "use_companion", "pooled", "onset", "shrink", "chain", "weights",
+        _one_of("cae_decel", self.cae_decel, CAE_DECEL)
+        for name in ("extra_inputs", "use_companion", "pooled", "onset", "shrink", "chain", "weights",
                      "calibrate_variance", "estimate_scatter"):
             self._set(name, _boolean(name, getattr(self, name)))
         self._set("effects", check_effects(self.effects))

@@ -41,7 +41,7 @@ from crashfuse.signals.domain import displacement_branches, rebound_work
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
 # are refused: refit); a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 10, "surrogate": 2}
+FORMAT = {"model": 11, "surrogate": 2}
 # What a user does about a file of another format.
 _REFIT = {"model": "refit with `crashfuse fit`", "surrogate": "refit with `crashfuse prepare`"}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
@@ -223,8 +223,9 @@ class FittedModel:
         return float(lo), float(hi)
 
     def rebound_range(self) -> tuple[float, float]:
-        """(lo, hi): the rebound speed over the CAE's that the training tests span, 1 included; (0, inf)
-        without tests reaching separation in their record, or for a file fitted before it was stored."""
+        """(lo, hi): the rebound speed over the CAE's that the training tests span, 1 included (a record
+        ending mid-spring-back counts as a lower bound: :func:`_rebound_ratios`); (0, inf) without tests
+        reaching their turnaround, or for a file fitted before it was stored."""
         ratios = self.ranges.get("rebound_ratio")
         if not ratios:
             return 0.0, np.inf
@@ -567,7 +568,13 @@ def _ranges(campaign: Campaign, train: list, data: BiasData, curves: dict) -> di
 
 
 def _rebound_ratios(campaign: Campaign, curves: dict) -> list:
-    """Each training test's rebound speed over its CAE curve's (tests whose record reaches separation)."""
+    """Each training test's rebound speed over its CAE curve's (tests that reach the unloading).
+
+    A record that ends while the spring-back still pushes gives its ratio so far, a lower bound: it may
+    widen the span upwards only (at least 1). Left out, the slow tests whose held unloading outlasts their
+    record left the span to the fast tests', and the rebound bound cut a slow test's correct rebound of
+    three times the CAE's to 1.5 (docs/decisions.md, section 69).
+    """
     out = []
     for test_id, curve in curves.items():
         unloading = displacement_branches(campaign.pulses[test_id]).unloading
@@ -575,8 +582,9 @@ def _rebound_ratios(campaign: Campaign, curves: dict) -> list:
             continue
         work, peak = rebound_work(unloading.x, unloading.decel)
         cae_work = rebound_work(curve.u, curve.a_unloading)[0]
-        if peak < unloading.x.size - 1 and cae_work > 0:
-            out.append(float(np.sqrt(work / cae_work)))
+        if cae_work > 0:
+            ratio = float(np.sqrt(work / cae_work))
+            out.append(ratio if peak < unloading.x.size - 1 else max(ratio, 1.0))
     return out
 
 

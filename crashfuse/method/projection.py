@@ -54,6 +54,7 @@ VELOCITY = {"linear": V_COL, "sqrt": SQRT_V_COL}
 # The CAE deceleration where the bias is measured (g): the structural stage the crush is in, and the
 # force an additive effect (e.g. damping) is a fraction of in a relative bias.
 CAE_COL = "cae_decel_g"
+CAE_DECEL = ("none", "unloading", "both")  # the branches with the CAE_COL input
 
 
 class Curve(Protocol):
@@ -181,7 +182,7 @@ class BiasData:
 def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper", extra_inputs: bool = False,
               n_grid: int | None = 200, surrogate: CAESurrogate | None = None, use_companion: bool = True,
               cae_curves: Mapping[str, CAECurve] | None = None, target: str = "absolute",
-              weights: bool = True, velocity: str = "linear", cae_decel: bool = False) -> BiasData:
+              weights: bool = True, velocity: str = "linear", cae_decel: str = "none") -> BiasData:
     """Bias training data from the given tests (a fold's training tests only: no leakage).
 
     Parameters
@@ -211,8 +212,8 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
         with v0 and the powertrain).
     velocity : {"linear", "sqrt"}
         The state mode's velocity column: ``v_mps``, or ``v_sqrt`` = sign(v) sqrt(|v|).
-    cae_decel : bool
-        Include the CAE curve's deceleration at each point (``cae_decel_g``, in g) as an input.
+    cae_decel : {"none", "unloading", "both"}
+        The branches whose inputs include the CAE curve's deceleration at each point (``cae_decel_g``, in g).
 
     Returns
     -------
@@ -228,12 +229,14 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
         raise InputError(f"expected one of {INPUTS}, got {inputs!r}", field="inputs")
     if target not in TARGETS:
         raise InputError(f"expected one of {TARGETS}, got {target!r}", field="target")
+    if cae_decel not in CAE_DECEL:
+        raise InputError(f"expected one of {CAE_DECEL}, got {cae_decel!r}", field="cae_decel")
     if len(test_ids) == 0:
         raise InputError("expected at least one training test, got none", campaign.root, "test_ids")
     if n_grid is not None and not (isinstance(n_grid, (int, np.integer)) and n_grid >= 2):
         raise InputError(f"expected None or an integer >= 2 points per branch, got {n_grid!r}", field="n_grid")
     categories = _categories(campaign) if extra_inputs else {}
-    columns = bias_columns(inputs, categories, weights, velocity, cae_decel)
+    columns = {b: bias_columns(inputs, categories, weights, velocity, cae_decel in (b, "both")) for b in BRANCHES}
     parts = {b: [] for b in BRANCHES}
     missing = {}
     for test_id in test_ids:
@@ -241,10 +244,10 @@ def bias_data(campaign: Campaign, test_ids: Sequence[str], inputs: str = "paper"
         curve = cae_curve(campaign, test, surrogate, use_companion, cae_curves or {})
         for name, rows in _test_rows(test, curve, n_grid, missing, target).items():
             x, v, bias, scale, a_cae = rows
-            X = bias_inputs(columns, x, v, test.v0, test.front_weight, test.rear_weight,
+            X = bias_inputs(columns[name], x, v, test.v0, test.front_weight, test.rear_weight,
                             test.meta.get("powertrain"), test.meta.get("drive"), a_cae)
             parts[name].append((X, bias, np.full(x.size, test_id, dtype=object), scale))
-    data = {b: _stack(parts[b], columns) for b in BRANCHES}
+    data = {b: _stack(parts[b], columns[b]) for b in BRANCHES}
     return BiasData(data["loading"], data["unloading"], inputs, categories, missing, target)
 
 

@@ -34,8 +34,8 @@ def method_args():
         f"--assignment {METHOD['assignment']}",
     ]
     flags += ["--extra-inputs"] if METHOD["extra_inputs"] else []
-    flags += ["--cae-decel"] if METHOD["cae_decel"] else []
-    flags += [f"--trend {METHOD['trend']}"] if METHOD["trend"] else []
+    for key in ("trend", "cae_decel"):  # None: each input mode's default
+        flags += [f"--{key.replace('_', '-')} {METHOD[key]}"] if METHOD[key] else []
     for key in ("use_companion", "pooled", "onset", "shrink", "chain"):  # None: each input mode's default
         name = key.replace("_", "-")
         flags += [] if METHOD[key] is None else [f"--{name}" if METHOD[key] else f"--no-{name}"]
