@@ -45,6 +45,14 @@ def _pairs(f=None, zeta=0.1, gains=(1.0,) * 6, noise_g=0.05, seed=0):
     return out
 
 
+def test_the_mount_is_the_bilinear_transform_of_its_transfer_function():
+    t, _, cae = _pairs()[0]
+    chain = MountResonance()
+    for chain.f_res_, chain.zeta_res_ in ((20.0, 0.02), (140.0, 0.08), (2000.0, 5.0)):
+        expected = _mount(cae, chain.f_res_, chain.zeta_res_)
+        assert np.abs(chain.apply(t, cae) - expected).max() < 1e-9 * cae.max()
+
+
 def test_the_mount_is_recovered_from_tests_read_through_it():
     chain = MountResonance().fit(_pairs(f=140.0, zeta=0.08))
     assert chain.f_res_ == pytest.approx(140.0, rel=0.03)
