@@ -14,6 +14,7 @@ from pathlib import Path
 from crashfuse import forkserver
 from crashfuse.catalogue import EFFECTS
 from crashfuse.errors import InputError
+from crashfuse.evaluation.iso_table import WINDOWS
 
 
 class _Parser(argparse.ArgumentParser):
@@ -143,7 +144,8 @@ def _world_validate_method(args) -> int:
     base = QUICK if args.quick else DEFAULTS
     spread = {name: base[name] if value is None else value for name, value in given.items()}
     result = validate_method(args.out, work=args.work, random_state=args.seed, n_jobs=args.jobs,
-                             auto=_auto_arg(args.auto), effects=_effects_arg(args.effects), **spread)
+                             auto=_auto_arg(args.auto), effects=_effects_arg(args.effects), windows=args.windows,
+                             **spread)
     print(result.summary.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
     return 0
 
@@ -402,10 +404,11 @@ def _evaluate(args) -> int:
     campaign, surrogate = _campaign_and_surrogate(args)
     result = evaluate(campaign, ks=args.k, inputs=args.inputs, out=args.out,
                       n_samples=args.samples, random_state=args.seed, n_jobs=args.jobs, surrogate=surrogate,
-                      holdout=args.holdout, band=args.band, auto=_auto_arg(args.auto), **_method_settings(args))
+                      holdout=args.holdout, band=args.band, auto=_auto_arg(args.auto), windows=args.windows,
+                      **_method_settings(args))
     plot_evaluation(result, args.out, campaign)
-    summary = result.iso_table[result.iso_table["window_ms"] == "0-60"].groupby(["inputs", "model"])["overall"]
-    print(summary.mean().round(3).to_string())
+    iso = result.iso_table
+    print(iso[iso["window_ms"] == args.windows[-1]].groupby(["inputs", "model"])["overall"].mean().round(3).to_string())
     return 0
 
 
@@ -519,6 +522,11 @@ def _positive(text: str) -> int:
     if value < 1:
         raise InputError(f"expected an integer >= 1, got {text!r}", field="arguments")
     return value
+
+
+def _add_windows_option(s) -> None:
+    s.add_argument("--windows", nargs="+", default=list(WINDOWS), metavar="START-END",
+                   help=f"ISO/TS 18571 windows in ms (default {' '.join(WINDOWS)}; e.g. 0-100 rates the rebound)")
 
 
 def _add_band_option(s) -> None:
@@ -738,6 +746,7 @@ def _add_world_validate_method(wsub) -> None:
     s.add_argument("--effects", nargs="+", default=["none"], metavar="EFFECT",
                    help="the physics-first hybrid of every fold, as evaluate's --effects: auto, none (default) "
                         f"or effects among: {' '.join(EFFECTS)}")
+    _add_windows_option(s)
     s.add_argument("--seed", type=_seed, default=0, help="seed of every evaluation (default 0)")
     s.add_argument("--jobs", type=_positive, default=2, help="worker processes for each campaign's folds (default 2)")
     s.set_defaults(func=_world_validate_method)
@@ -799,8 +808,7 @@ def _add_score(sub) -> None:
     _add_campaign(s)
     s.add_argument("fold", help="fold folder holding <test>_prediction.csv and <test>.rollout.json")
     s.add_argument("--test", required=True, help="the held-out test")
-    s.add_argument("--windows", nargs="+", default=["0-20", "0-40", "0-60"], metavar="START-END",
-                   help="ISO windows in ms (default 0-20 0-40 0-60)")
+    _add_windows_option(s)
     _add_surrogate_option(s)
     s.add_argument("--table-dir", required=True, help="folder for the fold's iso_table.csv and coverage.csv")
     s.set_defaults(func=_score)
@@ -840,6 +848,7 @@ def _add_evaluate(sub) -> None:
     _add_surrogate_option(s)
     _add_method_options(s)
     _add_band_option(s)
+    _add_windows_option(s)
     s.add_argument("--out", required=True, help="output folder")
     s.set_defaults(func=_evaluate)
 
@@ -975,7 +984,8 @@ _FLAGS = {
     "rollout": {"n_samples": "--samples", "band": "--band", "test": "--test"},
     "score": {"test": "--test", "windows": "--windows"},
     "plot fold": {"test": "--test"},
-    "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out", "auto": "--auto"},
+    "evaluate": {**_METHOD_FLAGS, "n_samples": "--samples", "band": "--band", "out": "--out", "auto": "--auto",
+                 "windows": "--windows"},
     "predict": {"n_samples": "--samples", "random_state": "--seed", "band": "--band"},
     "diagnose": {"effects": "--effects", "threshold": "--threshold", "alpha": "--alpha", "move": "--move",
                  "k": "--k", "inputs": "--inputs", "n_samples": "--samples", "random_state": "--seed",
@@ -990,7 +1000,7 @@ _FLAGS = {
     "world validate-method": {"worlds": "--worlds", "withheld": "--withheld", "strengths": "--strengths",
                               "seeds": "--seeds", "matrices": "--matrices", "n_cae": "--n-cae",
                               "inputs": "--inputs", "ks": "--k", "n_samples": "--samples", "out": "--out",
-                              "work": "--work", "effects": "--effects"},
+                              "work": "--work", "effects": "--effects", "windows": "--windows"},
 }
 
 

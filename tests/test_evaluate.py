@@ -104,6 +104,23 @@ def test_iso_table_contract(result):
     assert iso[["overall", "corridor", "phase", "magnitude", "slope"]].apply(lambda c: c.between(0, 1)).all().all()
 
 
+def test_other_windows_rate_the_same_folds(campaign, surrogate, result):
+    """``windows``: the folds, the auto model's choice among them and the CAE rows are the same; the rows are
+    the windows asked for, the rebound's 0-100 ms among them."""
+    fold = ev.evaluate(campaign, ks=[1, 2], inputs=["state"], holdout="T05", windows=("0-100", "0-60"),
+                       n_samples=40, n_jobs=1, surrogate=surrogate, progress=None, auto=True, **FAST)
+    iso = fold.iso_table
+    assert list(dict.fromkeys(iso["window_ms"])) == ["0-100", "0-60"]
+    assert set(iso["model"]) == {"CAE", "K1", "K2", "auto"} and iso["overall"].between(0, 1).all()
+    default = result[0].iso_table
+    default = default[(default.test_id == "T05") & (default.window_ms == "0-60") & (default.inputs != "paper")]
+    keys = ["inputs", "model"]
+    pd.testing.assert_frame_equal(iso[iso.window_ms == "0-60"].sort_values(keys).reset_index(drop=True),
+                                  default.sort_values(keys).reset_index(drop=True))
+    with pytest.raises(InputError, match="distinct ISO windows"):
+        ev.evaluate(campaign, ks=[1], inputs=["state"], windows=(), surrogate=surrogate, progress=None)
+
+
 def test_cae_rows_rate_the_companion_run(campaign, result):
     iso = result[0].iso_table
     test, cae = campaign.pulses["T05"], campaign.companion("T05")
@@ -245,6 +262,8 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     assert main(["evaluate", str(folder), "--k", "1", "--holdout", "C0001", "--out", str(tmp_path / "x")]) == 2
     assert main(["evaluate", str(folder), "--k", "1", "--surrogate", str(folder / "conditions.csv"),
                  "--out", str(tmp_path / "x")]) == 2
+    for windows in (["60-20"], ["0-60", "0-60"], ["0-60ms"]):
+        assert main(["evaluate", str(folder), "--k", "1", "--windows", *windows, "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
 
 

@@ -152,6 +152,14 @@ def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
     assert hybrid.table.loc[0, "model"] == "K1+damping" and hybrid.table.loc[0, "effects"] == "damping (1)"
     assert "effects-damping" in (tmp_path / "hybrid" / "method_matrix.md").read_text()
 
+    # Other windows too: an evaluation of its own, the rebound's 0-100 ms rated.
+    rebound = mv.validate_method(tmp_path / "rebound", work=tmp_path / "out" / "work", windows=("0-60", "0-100"),
+                                 **spread)
+    assert rebound.table.loc[0, "n_test_windows"] == 2 and "iso_0_20" not in rebound.table
+    assert rebound.table.loc[0, "iso_0_60"] == first.table.loc[0, "iso_0_60"]
+    assert "cae_0_100" in rebound.summary
+    assert "windows-0_60-0_100" in (tmp_path / "rebound" / "method_matrix.md").read_text()
+
 
 @pytest.mark.parametrize("args, flag", [
     (["--worlds", "third"], "--worlds"),
@@ -163,6 +171,7 @@ def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
     (["--inputs", "speed"], "--inputs"),
     (["--k", "0"], "--k"),
     (["--effects", "dampin"], "--effects"),
+    (["--windows", "0-60", "0-60"], "--windows"),
 ])
 def test_bad_options_exit_2_naming_the_option(tmp_path, capsys, args, flag):
     assert main(["world", "validate-method", "--out", str(tmp_path / "out"), *args]) == 2

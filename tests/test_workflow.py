@@ -268,13 +268,14 @@ def test_user_campaign_with_one_test_is_refused(tmp_path):
 
 
 def test_method_matrix_is_its_own_target_with_the_config_spread(tmp_path):
-    config = write_config(tmp_path / "c.yaml", validation={"method": {"worlds": ["multibody"], "seeds": [4]}})
+    config = write_config(tmp_path / "c.yaml", validation={"method": {"worlds": ["multibody"], "seeds": [4],
+                                                                       "windows": ["0-60", "0-100"]}})
     assert "validate_method" not in job_counts(snakemake(tmp_path, "-n", configfile=config).stdout)
     done = snakemake(tmp_path, "-n", "-p", "results/validation/method_matrix.csv", configfile=config)
     assert job_counts(done.stdout) == {"validate_method": 1}
     assert "world validate-method --worlds multibody --withheld single pairs paper none noise" in done.stdout
     assert "--seeds 4 " in done.stdout and "--n-cae 150 1000" in done.stdout
-    assert "--k 1 2 3 --auto --effects none " in done.stdout
+    assert "--k 1 2 3 --auto --effects none --windows 0-60 0-100 " in done.stdout
 
 
 def test_diagnosis_validation_is_its_own_target_with_the_config_spread(tmp_path):

@@ -230,11 +230,7 @@ def score_fold(campaign, test_id: str, frame, facts: dict, windows=WINDOWS, cae=
     """
     if facts["test_id"] != test_id:
         raise InputError(f"expected the rollout of {test_id}, got that of {facts['test_id']}", field="test")
-    for w in windows:
-        try:
-            window_bounds(w)
-        except ValueError as err:
-            raise InputError(str(err), field="windows") from None
+    windows = check_windows(windows)
     test = campaign.pulses[test_id].after_contact()
     mode, name, metrics = facts["inputs"], facts["model"], facts["metrics"]
     t = frame["time_s"].to_numpy(float)
@@ -262,6 +258,21 @@ def score_fold(campaign, test_id: str, frame, facts: dict, windows=WINDOWS, cae=
         figures=[f"{test_id}.png"], prediction=f"{test_id}_prediction.csv", run_time=dict(facts.get("run_time", {})),
     )
     return {"iso": iso, "cae_iso": cae_iso, "coverage": coverage, "record": record}
+
+
+def check_windows(windows) -> tuple[str, ...]:
+    """``windows`` (labels ``'<start>-<end>'`` in ms) as a tuple; InputError (field ``windows``) on none, a bad
+    label or one given twice."""
+    windows = (windows,) if isinstance(windows, str) else tuple(windows)
+    if not windows or len(set(windows)) < len(windows):
+        raise InputError(f"expected one or more distinct ISO windows '<start>-<end>' in ms, got {list(windows)}",
+                         field="windows")
+    for w in windows:
+        try:
+            window_bounds(w)
+        except ValueError as err:
+            raise InputError(str(err), field="windows") from None
+    return windows
 
 
 def _companion(campaign, test_id):

@@ -4,8 +4,8 @@ For every input mode, every K and every test of the campaign, one fold: the bias
 on the other tests only (the CAE surrogate is fitted ONCE on the CAE runs, which contain no test
 data, and shared by every fold), the held-out test's condition is predicted
 (:func:`crashfuse.method.rollout.predict`) and the Monte Carlo mean is rated against the held-out (CFC 60)
-test over 0-20, 0-40 and 0-60 ms. The ``CAE`` rows rate the test's companion CAE run (the surrogate's
-zero-bias pulse where a test has none). Folds run in parallel processes (joblib/loky).
+test over 0-20, 0-40 and 0-60 ms (or the windows asked for). The ``CAE`` rows rate the test's companion
+CAE run (the surrogate's zero-bias pulse where a test has none). Folds run in parallel processes (joblib/loky).
 
 Band coverage: the fraction of held-out test samples in 0-60 ms inside the reported 95 % band
 (``band='test'`` by default: where a new test is expected, :func:`crashfuse.method.rollout.predict`), and
@@ -29,8 +29,9 @@ import pandas as pd
 from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
-from crashfuse.evaluation.iso_table import AUTO, COLUMNS, effects_label
-from crashfuse.evaluation.fold import AUTO_INPUTS, COVERAGE_COLUMNS, auto_facts, cae_pulse, rollout_fold, score_fold
+from crashfuse.evaluation.iso_table import AUTO, COLUMNS, WINDOWS, effects_label
+from crashfuse.evaluation.fold import AUTO_INPUTS, COVERAGE_COLUMNS, auto_facts, cae_pulse, check_windows, rollout_fold
+from crashfuse.evaluation.fold import score_fold
 from crashfuse.evaluation.fold import cae_rows as fold_cae_rows
 from crashfuse.evaluation.records import fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
@@ -77,7 +78,7 @@ class Evaluation:
 def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.PathLike | None = None,
              n_samples: int = 1000, random_state: int = 0, n_jobs: int = 2, surrogate: CAESurrogate | None = None,
              holdout=None, progress: Callable[[str], None] | None = print, band: str = "test",
-             auto=False, **settings) -> Evaluation:
+             auto=False, windows=WINDOWS, **settings) -> Evaluation:
     """Every leave-one-test-out fold for each K in ``ks`` and each input mode.
 
     Parameters
@@ -112,6 +113,9 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         (:func:`crashfuse.method.selection.inner_error`, the simplest unless a more complex candidate
         removes 10 % of the error: :func:`crashfuse.method.selection.choose`); its rows are labelled
         ``auto`` for both ``inputs`` and ``model``, its fold JSON names the choice.
+    windows : sequence of str
+        ISO/TS 18571 windows ``'<start>-<end>'`` in ms (default the paper's 0-20, 0-40 and 0-60); the
+        progress lines name the last.
     **settings
         Further :class:`crashfuse.method.config.MethodConfig` settings of every fold (``assignment``,
         ``extra_inputs``, ``n_grid``, ``use_companion``, ``target``, ``weights``, ``velocity``, ``trend``,
@@ -125,6 +129,7 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     """
     t0 = time.perf_counter()
     ks, inputs = _check_grid(ks, inputs)
+    windows = check_windows(windows)
     configs = fold_configs(ks, inputs, random_state, settings)
     tests = _held_out(campaign, holdout)
     surrogate = surrogate or CAESurrogate(random_state=random_state).fit(campaign)
@@ -137,22 +142,23 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
     n_folds = len(ks) * len(chains)
     say(f"evaluate: {n_folds} folds ({len(tests)} tests x K {list(ks)} x {list(inputs)}), {n_jobs} jobs")
     done, n = {}, 0
-    for key, chain in zip(keys, _run_chains(campaign, surrogate, chains, n_jobs, (n_samples, band, auto_modes))):
+    for key, chain in zip(keys, _run_chains(campaign, surrogate, chains, n_jobs,
+                                                       (n_samples, band, windows, auto_modes))):
         done[key] = chain
         for res in chain:
             n, cov = n + 1, res["coverage"]
             say(f"[{n}/{n_folds}] {cov['inputs']} {cov['model']} {cov['test_id']}: "
-                f"ISO(0-60) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
+                f"ISO({windows[-1]}) {res['iso'][-1]['overall']:.3f}, coverage {cov['coverage']:.2f}, "
                 f"fit {cov['fit_s']:.1f} s")
     results = [done[mode, t][ascending.index(k)] for mode in inputs for k in ks for t in tests]
     if auto_modes:
         chosen = [_auto_fold(campaign, surrogate, [r for r in results if r["coverage"]["test_id"] == t
-                                                   and r["coverage"]["inputs"] in auto_modes], auto_modes)
+                                                   and r["coverage"]["inputs"] in auto_modes], auto_modes, windows)
                   for t in tests]
         say("auto: " + ", ".join(f"{r['coverage']['test_id']} {r['record'].settings['chosen']}" for r in chosen))
         results += chosen
     modes = [*inputs, AUTO] if auto_modes else inputs
-    cae_rows = [row for t in tests for mode in modes for row in fold_cae_rows(campaign, surrogate, t, mode)]
+    cae_rows = [row for t in tests for mode in modes for row in fold_cae_rows(campaign, surrogate, t, mode, windows)]
     iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=list(COLUMNS))
     coverage = pd.DataFrame([res["coverage"] for res in results], columns=COVERAGE_COLUMNS)
     keys = [(r["coverage"]["inputs"], r["coverage"]["model"], r["coverage"]["test_id"]) for r in results]
@@ -276,25 +282,25 @@ def _chain(campaign, surrogate, configs, test_id, physics, *settings) -> list:
     return out
 
 
-def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, auto_modes=(),
-          pooled=None, chain=None) -> dict:
+def _fold(campaign, surrogate, config: MethodConfig, test_id, physics, n_samples, band, windows=WINDOWS,
+          auto_modes=(), pooled=None, chain=None) -> dict:
     """Fit ``config`` without ``test_id`` (with the hybrid's ``physics`` fitted without it, if any, and
     the ``pooled`` GPs and measurement ``chain`` of another K's fit), roll out its condition and score it
     (:mod:`crashfuse.evaluation.fold`, the workflow's three steps in one process); the fit's inner
     error too where its input mode is among ``auto_modes``."""
     model = fit_model(campaign, config, holdout=test_id, surrogate=surrogate, physics=physics, pooled=pooled,
                       chain=chain)
-    return {**scored_fold(model, campaign, surrogate, test_id, n_samples, band, config.inputs in auto_modes),
+    return {**scored_fold(model, campaign, surrogate, test_id, n_samples, band, config.inputs in auto_modes, windows),
             "model": model}
 
 
-def scored_fold(model, campaign, surrogate, test_id, n_samples, band="test", inner=False) -> dict:
-    """A fitted fold model's rollout of its held-out test, scored: ``iso``, ``coverage``, ``record`` (as
-    :func:`crashfuse.evaluation.fold.score_fold`), ``facts`` and ``frame`` (the prediction table with the
-    test's deceleration)."""
+def scored_fold(model, campaign, surrogate, test_id, n_samples, band="test", inner=False, windows=WINDOWS) -> dict:
+    """A fitted fold model's rollout of its held-out test, scored over ``windows``: ``iso``, ``coverage``,
+    ``record`` (as :func:`crashfuse.evaluation.fold.score_fold`), ``facts`` and ``frame`` (the prediction table
+    with the test's deceleration)."""
     pred, facts = rollout_fold(model, campaign, test_id, n_samples, band, inner)
     frame = pred.frame()
-    scored = score_fold(campaign, test_id, frame, facts, cae=cae_pulse(campaign, surrogate, test_id))
+    scored = score_fold(campaign, test_id, frame, facts, windows, cae=cae_pulse(campaign, surrogate, test_id))
     frame["test_decel_g"] = np.interp(pred.time, *_test_decel(campaign, test_id)) / G0
     return {"iso": scored["iso"], "coverage": scored["coverage"], "frame": frame, "record": scored["record"],
             "facts": facts}
@@ -305,11 +311,11 @@ def _test_decel(campaign, test_id):
     return test.time, test.decel
 
 
-def _auto_fold(campaign, surrogate, candidates: list, inputs: list) -> dict:
+def _auto_fold(campaign, surrogate, candidates: list, inputs: list, windows) -> dict:
     """The ``auto`` fold of one held-out test: the candidate fold :func:`auto_facts` picks, scored under its label."""
     index, facts = auto_facts([c["facts"] for c in candidates], inputs)
     test_id, frame = facts["test_id"], candidates[index]["frame"]
-    scored = score_fold(campaign, test_id, frame, facts, cae=cae_pulse(campaign, surrogate, test_id))
+    scored = score_fold(campaign, test_id, frame, facts, windows, cae=cae_pulse(campaign, surrogate, test_id))
     return {"iso": scored["iso"], "coverage": scored["coverage"], "frame": frame, "record": scored["record"],
             "facts": facts}
 

@@ -25,7 +25,8 @@ import pandas as pd
 from crashfuse.catalogue import EFFECTS, check_effect
 from crashfuse.errors import InputError
 from crashfuse.gp.threads import cpu_kernels
-from crashfuse.evaluation.iso_table import AUTO, BASELINE, ISO_TABLE, SCORES, effects_label, window_key
+from crashfuse.evaluation.iso_table import AUTO, BASELINE, ISO_TABLE, SCORES, WINDOWS, effects_label, window_key
+from crashfuse.evaluation.fold import check_windows
 from crashfuse.evaluation.loto import evaluate
 from crashfuse.io.atomic import atomic_path, write_text
 from crashfuse.io.campaign import read_campaign
@@ -233,16 +234,19 @@ def campaign_folder(spec: CampaignSpec, work: Path, say) -> Path:
     return folder
 
 
-def evaluation_key(inputs, ks, n_samples, random_state, auto=False, effects=()) -> str:
+def evaluation_key(inputs, ks, n_samples, random_state, auto=False, effects=(), windows=WINDOWS) -> str:
     auto = "" if not auto else "-auto" if auto is True else "-auto-" + "-".join(auto)
     effects = f"-effects-{effects_label(effects)}" if effects else ""
-    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{auto}{effects}-n{n_samples}-seed{random_state}"
+    windows = "" if tuple(windows) == WINDOWS else "-windows-" + "-".join(map(window_key, windows))
+    return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{auto}{effects}{windows}-n{n_samples}-seed{random_state}"
 
 
 def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int, n_jobs: int,
-                      progress=None, auto=False, effects=()) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
+                      progress=None, auto=False, effects=(),
+                      windows=WINDOWS) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
     """The campaign's ISO table and coverage, from ``out`` if there, else evaluated and written there
-    (``progress`` receives evaluate's line per fold; ``effects``: the hybrid's, ``MethodConfig.effects``).
+    (``progress`` receives evaluate's line per fold; ``effects``: the hybrid's, ``MethodConfig.effects``;
+    ``windows``: the ISO windows).
 
     ``coverage.csv`` is written before ``iso_table.csv``: an ISO table means a complete evaluation.
 
@@ -255,7 +259,7 @@ def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, rando
     if iso_path.is_file() and cov_path.is_file():
         return pd.read_csv(iso_path), pd.read_csv(cov_path), True
     result = evaluate(read_campaign(folder), ks=ks, inputs=inputs, n_samples=n_samples, random_state=random_state,
-                      n_jobs=n_jobs, progress=progress, auto=auto, effects=effects)
+                      n_jobs=n_jobs, progress=progress, auto=auto, effects=effects, windows=windows)
     out.mkdir(parents=True, exist_ok=True)
     for frame, path in ((result.coverage, cov_path), (result.iso_table, iso_path)):
         with atomic_path(path) as tmp:
@@ -363,7 +367,8 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
                     strengths=DEFAULTS["strengths"], seeds=DEFAULTS["seeds"], matrices=DEFAULTS["matrices"],
                     n_cae=DEFAULTS["n_cae"], inputs=DEFAULTS["inputs"], ks=DEFAULTS["ks"],
                     n_samples: int = DEFAULTS["n_samples"], random_state: int = 0, n_jobs: int = 2,
-                    progress: Callable[[str], None] | None = print, auto=False, effects=()) -> MatrixResult:
+                    progress: Callable[[str], None] | None = print, auto=False, effects=(),
+                    windows=WINDOWS) -> MatrixResult:
     """Generate the spread (:func:`plan`), evaluate each campaign, write the matrix table.
 
     Parameters
@@ -391,6 +396,9 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
     effects : "auto", "none" or sequence of str
         The physics-first hybrid of every fold (:class:`crashfuse.method.config.MethodConfig`'s ``effects``;
         default none: the GMM-GPR model alone).
+    windows : sequence of str
+        ISO/TS 18571 windows ``'<start>-<end>'`` in ms (default 0-20, 0-40, 0-60); the summary's mean ISO
+        and ``behind_best`` are the last window's.
 
     Returns
     -------
@@ -405,12 +413,13 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
     say = progress or (lambda line: None)
     specs, notes = plan(worlds, withheld, strengths, seeds, matrices, n_cae)
     inputs, ks, n_samples, effects = check_method(inputs, ks, n_samples, effects)
+    windows = check_windows(windows)
     out = Path(out)
     work = out / "work" if work is None else Path(work)
     for path, field in ((out, "out"), (work, "work")):
         if path.exists() and not path.is_dir():
             raise InputError("expected a folder, found a file", path, field)
-    eval_key = evaluation_key(inputs, ks, n_samples, random_state, auto, effects)
+    eval_key = evaluation_key(inputs, ks, n_samples, random_state, auto, effects, windows)
     say(f"validate-method: {len(specs)} campaigns x {' '.join(inputs)} K {' '.join(map(str, ks))}, "
         f"effects {effects_label(effects)}, {n_samples} samples, work {work}")
     rows, losses = [], []
@@ -419,12 +428,13 @@ def validate_method(out, work=None, worlds=DEFAULTS["worlds"], withheld=DEFAULTS
         folder = campaign_folder(spec, work, say)
         iso, cov, reused = evaluate_campaign(folder, work / "evaluations" / spec.key / eval_key, inputs, ks,
                                              n_samples, random_state, n_jobs, lambda line: say(f"  {line}"), auto,
-                                             effects)
+                                             effects, windows)
         scored = score_rows(iso, cov)
         rows += [{**dataclasses.asdict(spec), **row} for row in scored]
         losses.append(lost_windows(iso).assign(**dataclasses.asdict(spec)))
         say(f"[{i}/{len(specs)}] {spec.key}: " + ", ".join(
-            f"{r['inputs']} {r['model']} ISO(0-60) {r.get('iso_0_60', np.nan):.3f} lost {r[loss_column(0.01)]}"
+            f"{r['inputs']} {r['model']} ISO({windows[-1]}) {r[f'iso_{window_key(windows[-1])}']:.3f} "
+            f"lost {r[loss_column(0.01)]}"
             for r in scored) + (" (reused)" if reused else f" ({time.perf_counter() - t1:.0f} s)"))
     table = pd.DataFrame(rows)
     table = table[list(KEY_COLUMNS) + [c for c in table.columns if c not in KEY_COLUMNS]]

@@ -66,6 +66,7 @@ rule validate_method:
             f"--matrices {' '.join(MATRIX['matrices'])} --n-cae {' '.join(map(str, MATRIX['n_cae']))} "
             f"--inputs {' '.join(MATRIX['inputs'])} --k {' '.join(map(str, MATRIX['ks']))} "
             f"{'--auto ' if MATRIX['auto'] else ''}--effects {' '.join(MATRIX['effects'])} "
+            f"--windows {' '.join(MATRIX['windows'])} "
             f"--samples {MATRIX['samples']} --seed {MATRIX['seed']}"
         ),
     threads: 2
