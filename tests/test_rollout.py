@@ -343,7 +343,7 @@ def test_fit_reports_only_too_few_points_as_bad_k(campaign, surrogate, monkeypat
 
 
 def test_a_companion_curve_at_prediction_is_the_one_the_bias_was_learnt_on(campaign, surrogate, model):
-    # Companions cut before separation must borrow the surrogate's unloading at prediction too,
+    # Companions cut before separation must borrow the surrogate's unloading (beyond their record) at prediction too,
     # not continue their own: the unloading bias belongs to the branch it was measured against.
     companions = dataclasses.replace(model, config=dataclasses.replace(model.config, use_companion=True))
     origins = set()
@@ -355,7 +355,7 @@ def test_a_companion_curve_at_prediction_is_the_one_the_bias_was_learnt_on(campa
         assert used.unloading_origin == learnt.unloading_origin
         np.testing.assert_array_equal(used.a_unloading, learnt.a_unloading)
         origins.add(used.unloading_origin)
-    assert "stand-in" in origins  # the case this guards is present in the campaign
+    assert "joined" in origins  # the case this guards is present in the campaign
 
 
 def test_cli_fit_predict_round_trip(tmp_path, capsys):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import platform
 import subprocess
@@ -114,8 +115,20 @@ def test_a_run_cut_before_separation_is_continued_or_stood_in_for(world, fitted)
     assert own.u_end > br.unloading.x[-1] and own.unloading(own.u_end) == 0.0
     np.testing.assert_allclose(own.unloading(br.unloading.x), br.unloading.decel)
     stand_in = fitted.curve(run.v0, run.front_weight, run.rear_weight, run.meta["powertrain"], run.meta["drive"])
-    assert CAECurve.from_pulse(run, unloading_from=stand_in).unloading_origin == "stand-in"
+    joined = CAECurve.from_pulse(run, unloading_from=stand_in)
     assert CAECurve.from_pulse(world.pulses["CT08"], unloading_from=stand_in).unloading_origin == "run"
+    # With a stand-in: the run's own spring-back as far as the record goes, the stand-in's shape beyond,
+    # joined without a step, to the stand-in's separation.
+    assert joined.unloading_origin == "joined" and joined.u_end == stand_in.u_end
+    np.testing.assert_allclose(joined.unloading(br.unloading.x), br.unloading.decel)
+    u_join = br.unloading.x[-1]
+    step = joined.unloading(u_join + 1e-4) - joined.unloading(u_join)
+    assert abs(step) < 0.02 * br.unloading.decel[-1] < abs(stand_in.unloading(u_join) - br.unloading.decel[-1])
+    # A stand-in that separates before the record's spring-back ends is taken whole (decisions.md, section 70).
+    short = stand_in.u < 0.5 * u_join
+    early = dataclasses.replace(stand_in, u=stand_in.u[short], u_end=float(stand_in.u[short][-1]),
+                                a_unloading=np.append(stand_in.a_unloading[short][:-1], 0.0))
+    assert CAECurve.from_pulse(run, unloading_from=early).unloading_origin == "stand-in"
 
 
 def test_surrogate_s_max_is_where_its_rollout_stops(world, fitted):

@@ -74,8 +74,8 @@ class CAECurve:
         The CAE run (``from_pulse``) or ``"surrogate"``.
     unloading_origin : str
         ``run`` (the run's own, to separation), ``continued`` (the run's own to the record's end,
-        then its last stiffness down to 0), ``stand-in`` (from ``unloading_from``), ``surrogate``
-        or ``none``.
+        then its last stiffness down to 0), ``joined`` (the run's own to the record's end, then
+        ``unloading_from``'s), ``stand-in`` (from ``unloading_from``), ``surrogate`` or ``none``.
     """
 
     s: np.ndarray
@@ -93,9 +93,11 @@ class CAECurve:
         """The curve of one CAE run, taken directly from its branches (``use_companion=True``).
 
         The unloading branch is, in order of preference: the run's own, if it reaches separation
-        inside the record; else ``unloading_from``'s, if given; else, if the run stopped, its own
-        continued from the record's end with its last stiffness down to 0 (where that slope
-        falls); else none (``unloading_origin`` says which).
+        inside the record; else, with ``unloading_from``, the run's own as far as its record goes joined
+        to ``unloading_from``'s beyond, scaled to meet it (:func:`_joined_unloading`), or - where the run
+        never stops or ``unloading_from`` separates first - ``unloading_from``'s whole; else, if the run
+        stopped, its own continued from the record's end with its last stiffness down to 0 (where that
+        slope falls); else none (``unloading_origin`` says which).
 
         Parameters
         ----------
@@ -120,7 +122,8 @@ class CAECurve:
                                                              pulse.where)
         unload = (*_unloading_to_separation(br), "run") if br.stopped and _separation(br) is not None else None
         if unload is None and unloading_from is not None and unloading_from.u is not None:
-            unload = (unloading_from.u, unloading_from.a_unloading, "stand-in")
+            joined = _joined_unloading(br.unloading.x, br.unloading.decel, unloading_from) if br.stopped else None
+            unload = joined or (unloading_from.u, unloading_from.a_unloading, "stand-in")
         if unload is None and br.stopped:
             unload = _continued_unloading(br.unloading.x, br.unloading.decel)
         u, a_u, origin = unload if unload is not None else (None, None, "none")
@@ -437,6 +440,25 @@ def _unloading_to_separation(br: Branches) -> tuple[np.ndarray, np.ndarray]:
     u, a = br.unloading.x[: k + 1].copy(), br.unloading.decel[: k + 1].copy()
     a[-1] = 0.0
     return u, a
+
+
+def _joined_unloading(u: np.ndarray, a: np.ndarray, stand_in: "CAECurve"):
+    """A run's unloading ``(u, a)`` cut by its record's end, continued by ``stand_in``'s beyond it:
+    ``(u, a, 'joined')``, or None where the stand-in ends first or the two do not push there.
+
+    The stand-in (the surrogate's curve at the run's condition) is scaled to the run's force over the
+    last 5 % of the run's spring-back: taken whole, it met the run's turnaround with the surrogate's
+    force, a jump of up to 2.5 g in a companion rollout that the run itself does not show
+    (docs/decisions.md, section 70).
+    """
+    beyond = stand_in.u > u[-1]
+    if u.size < 2 or not beyond.any():
+        return None
+    tail = u >= u[-1] - 0.05 * (u[-1] - u[0])
+    own, theirs = float(np.mean(a[tail])), float(np.mean(np.interp(u[tail], stand_in.u, stand_in.a_unloading)))
+    if own <= 0 or theirs <= 0:
+        return None
+    return np.append(u, stand_in.u[beyond]), np.append(a, stand_in.a_unloading[beyond] * own / theirs), "joined"
 
 
 def _end_slope(x: np.ndarray, a: np.ndarray) -> float:
