@@ -30,8 +30,8 @@ from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import AUTO, COLUMNS, WINDOWS, effects_label
-from crashfuse.evaluation.fold import AUTO_INPUTS, COVERAGE_COLUMNS, auto_facts, cae_pulse, check_windows, rollout_fold
-from crashfuse.evaluation.fold import score_fold
+from crashfuse.evaluation.fold import (AUTO_INPUTS, COVERAGE_COLUMNS, auto_facts, cae_pulse, check_windows,
+                                       rollout_fold, score_fold)
 from crashfuse.evaluation.fold import cae_rows as fold_cae_rows
 from crashfuse.evaluation.records import fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
