@@ -30,9 +30,8 @@ from joblib import Parallel, delayed, effective_n_jobs
 
 from crashfuse.errors import InputError
 from crashfuse.evaluation.iso_table import AUTO, COLUMNS, WINDOWS, effects_label
-from crashfuse.evaluation.fold import (AUTO_INPUTS, COVERAGE_COLUMNS, auto_facts, cae_pulse, check_windows,
+from crashfuse.evaluation.fold import (AUTO_INPUTS, COVERAGE_COLUMNS, auto_facts, cae_pulse, cae_rows, check_windows,
                                        rollout_fold, score_fold)
-from crashfuse.evaluation.fold import cae_rows as fold_cae_rows
 from crashfuse.evaluation.records import fold_folder, write_fold_json
 from crashfuse.io.atomic import atomic_path
 from crashfuse.io.campaign import Campaign
@@ -158,8 +157,8 @@ def evaluate(campaign: Campaign, ks=(1, 2, 3), inputs=INPUTS, out: str | os.Path
         say("auto: " + ", ".join(f"{r['coverage']['test_id']} {r['record'].settings['chosen']}" for r in chosen))
         results += chosen
     modes = [*inputs, AUTO] if auto_modes else inputs
-    cae_rows = [row for t in tests for mode in modes for row in fold_cae_rows(campaign, surrogate, t, mode, windows)]
-    iso = pd.DataFrame(cae_rows + [r for res in results for r in res["iso"]], columns=list(COLUMNS))
+    baseline = [row for t in tests for mode in modes for row in cae_rows(campaign, surrogate, t, mode, windows)]
+    iso = pd.DataFrame(baseline + [r for res in results for r in res["iso"]], columns=list(COLUMNS))
     coverage = pd.DataFrame([res["coverage"] for res in results], columns=COVERAGE_COLUMNS)
     keys = [(r["coverage"]["inputs"], r["coverage"]["model"], r["coverage"]["test_id"]) for r in results]
     predictions = {key: r["frame"] for key, r in zip(keys, results)}
