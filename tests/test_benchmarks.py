@@ -61,7 +61,8 @@ def test_bench_campaign_read_runs_on_a_tiny_campaign(tiny_campaign, capsys):
     assert bench.main([str(tiny_campaign), "--repeat", "1", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["runs"] == 22 and out["tests"] == 3
-    assert out["full_s"] > 0 and out["lazy_tests_s"] >= out["lazy_open_s"] > 0
+    # timings only: their order is the benchmark's finding, not a property a test may rely on
+    assert min(out["full_s"], out["lazy_open_s"], out["lazy_tests_s"]) > 0
     assert out["ratio"] == pytest.approx(out["full_s"] / out["lazy_tests_s"])
 
 
