@@ -20,6 +20,7 @@ from crashfuse.method.projection import CAE_DECEL, INPUTS, TARGETS, VELOCITY
 ASSIGNMENTS = ("select", "blend")  # cluster rules of GMMGPBias
 TRENDS = ("zero", "constant", "linear")  # trends of KrigingGP
 _THETA_MIN, _THETA_MAX = GMMGPBias().theta_bounds  # the bias model's own bounds on its GPs' theta
+_NUGGET_MIN, _NUGGET_MAX = GMMGPBias().nugget_bounds  # ... and on their nugget
 
 # The settings that depend on the input mode, and why each mode has its value.
 MODE_DEFAULTS = {
@@ -32,6 +33,7 @@ MODE_DEFAULTS = {
         "use_companion": False,  # as published: a condition's CAE curve from the surrogate G_a
         "chain": False,  # as published: the bias against the CAE pulse as it is
         "theta_min": _THETA_MIN,  # the bias model's own bound: an input may drop out entirely
+        "nugget_min": _NUGGET_MIN,  # the bias model's own bound: the GPs may interpolate the tests
         "cae_decel": "none",  # as published: the inputs [x, v0, w_f, w_r]
     },
     "state": {
@@ -62,6 +64,11 @@ MODE_DEFAULTS = {
         # to smooth bias data (the body decelerations), unbounded lengths took a near-infinite variance and
         # a mean that swung to slow tests and late crush like a polynomial (docs/decisions.md, section 66)
         "theta_min": 0.1,
+        # the GPs' noise at least 1 % of their variance: each test's own bias path (its scatter about the others)
+        # is noise to the GP, not a function of the inputs. With the floor at 1e-8, a fit threaded that scatter along
+        # each test's CAE deceleration at a nugget of 3e-6 and predicted a held-out control test wrong by 0.2-0.35 of
+        # its deceleration (docs/decisions.md, sections 74-76)
+        "nugget_min": 1e-2,
         # the CAE's deceleration is the unloading's stage (it falls monotonically to the CAE's separation):
         # without it the unloading GP told the tests apart by their speed and predicted no correction at a
         # held-out test; on loading it is not monotone and cost test-windows (docs/decisions.md, sections 38, 69)
@@ -79,8 +86,8 @@ _BIAS_DEFAULTS = GMMGPBias().get_params()
 class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
-    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion``, ``chain``, ``theta_min`` and
-    ``cae_decel`` left as None take the input mode's value (``MODE_DEFAULTS``), so a config always holds the values the
+    ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion``, ``chain``, ``theta_min``,
+    ``nugget_min`` and ``cae_decel`` left as None take the input mode's value (``MODE_DEFAULTS``), so a config always holds the values the
     fit used. To change the input mode of a config, build a new one (``dataclasses.replace`` keeps the
     old mode's values).
 
@@ -127,6 +134,9 @@ class MethodConfig:
         Lower bound of every GP correlation parameter ``theta`` of the bias model (> 0; the upper is
         chosen among ``theta_max_candidates``): in standardised inputs, a correlation length of at most
         ``1 / sqrt(2 theta_min)`` standard deviations (:class:`crashfuse.gp.kriging.KrigingGP`).
+    nugget_min : float or None
+        Lower bound of every bias GP's nugget (> 0, below the upper bound 10): the least noise variance
+        the GPs fit, as a fraction of their process variance (:class:`crashfuse.gp.kriging.KrigingGP`).
     chain : bool or None
         Fit the tests' measurement chain (an accelerometer mount resonance,
         :class:`crashfuse.method.chain.MountResonance`) between the training tests and their companion
@@ -166,6 +176,7 @@ class MethodConfig:
     shrink: bool | None = None
     chain: bool | None = None
     theta_min: float | None = None
+    nugget_min: float | None = None
     weights: bool = True
     velocity: str = "sqrt"
     effects: tuple | str = ()
@@ -199,6 +210,10 @@ class MethodConfig:
             self._set(name, _integer(name, getattr(self, name), 1, name, optional=True))
         self._set("theta_max_candidates", _positive_floats("theta_max_candidates", self.theta_max_candidates))
         self._set("theta_min", _positive_float("theta_min", self.theta_min))
+        self._set("nugget_min", _positive_float("nugget_min", self.nugget_min))
+        if self.nugget_min >= _NUGGET_MAX:
+            raise InputError(f"expected nugget_min below the bias GPs' upper bound {_NUGGET_MAX}, got {self.nugget_min}",
+                             field="nugget_min")
         if self.theta_min >= min(self.theta_max_candidates):
             raise InputError(f"expected theta_min below every theta_max_candidates {self.theta_max_candidates}, "
                              f"got {self.theta_min}", field="theta_min")
@@ -212,9 +227,8 @@ class MethodConfig:
 
     def bias_params(self) -> dict:
         """The :class:`crashfuse.method.mixture.GMMGPBias` settings besides K, assignment and the seed."""
-        # None: a config read from a model file fitted before the bound was a setting, with the model's own
-        theta_min = _THETA_MIN if self.theta_min is None else self.theta_min
-        return {"trend": self.trend, "pooled": self.pooled, "theta_bounds": (theta_min, _THETA_MAX),
+        return {"trend": self.trend, "pooled": self.pooled, "theta_bounds": (self.theta_min, _THETA_MAX),
+                "nugget_bounds": (self.nugget_min, _NUGGET_MAX),
                 **{name: getattr(self, name) for name in BIAS_SETTINGS}}
 
     def changed_bias_settings(self) -> dict:

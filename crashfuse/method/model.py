@@ -41,7 +41,7 @@ from crashfuse.signals.domain import displacement_branches, rebound_work
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
 # are refused: refit); a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 11, "surrogate": 2}
+FORMAT = {"model": 12, "surrogate": 2}
 # What a user does about a file of another format.
 _REFIT = {"model": "refit with `crashfuse fit`", "surrogate": "refit with `crashfuse prepare`"}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
