@@ -28,11 +28,18 @@ def test_the_two_modes_differ_where_the_method_says():
     assert (paper.cae_decel, state.cae_decel) == ("none", "unloading")
 
 
-def test_a_default_state_config_hands_the_bias_model_its_defaults_with_the_state_theta_bound():
+def test_a_default_state_config_hands_the_bias_model_its_defaults_with_the_state_bounds():
     config = MethodConfig(k=3, inputs="state")
-    own = GMMGPBias(n_clusters=3, trend="zero", pooled=True, theta_bounds=(0.1, 1e3)).get_params()
+    own = GMMGPBias(n_clusters=3, trend="zero", pooled=True, theta_bounds=(0.1, 1e3),
+                    nugget_bounds=(1e-2, 10.0)).get_params()
     assert GMMGPBias(n_clusters=3, **config.bias_params()).get_params() == own
     assert config.changed_bias_settings() == {}
+
+
+def test_a_default_paper_config_hands_the_bias_model_its_own_bounds():
+    own = GMMGPBias(n_clusters=2).get_params()
+    assert GMMGPBias(n_clusters=2, **MethodConfig(k=2, inputs="paper").bias_params()).get_params() == own
+    assert MethodConfig(inputs="state", nugget_min=1e-4).bias_params()["nugget_bounds"] == (1e-4, 10.0)
 
 
 @pytest.mark.parametrize("kw, field", [
@@ -61,6 +68,9 @@ def test_a_default_state_config_hands_the_bias_model_its_defaults_with_the_state
     (dict(theta_min=0.0), "theta_min"),
     (dict(theta_min="small"), "theta_min"),
     (dict(theta_min=10.0, theta_max_candidates=(1.0, 10.0)), "theta_min"),
+    (dict(nugget_min=0.0), "nugget_min"),
+    (dict(nugget_min="none"), "nugget_min"),
+    (dict(nugget_min=10.0), "nugget_min"),
 ])
 def test_bad_settings_name_the_setting(kw, field):
     with pytest.raises(InputError) as err:
