@@ -40,6 +40,10 @@ def log_bounds(d, theta_bounds, theta_max, nugget_bounds):
     return np.column_stack([lo, hi])
 
 
+# The nugget a floor is searched from: KrigingGP's own lower bound.
+FREE_NUGGET = 1e-8
+
+
 def _fixed_start(bounds):
     """theta = 1, nugget = 1e-3, clipped into ``bounds``."""
     return np.clip(np.r_[np.zeros(len(bounds) - 1), np.log(1e-3)], bounds[:, 0], bounds[:, 1])
@@ -51,6 +55,11 @@ def _lbfgs(x0, Z, u, H, bounds):
 
 def maximise_likelihood(Z, u, H, bounds, rng, n_restarts):
     """Best ``eta`` over the fixed start and ``n_restarts`` random ones.
+
+    Under a nugget floor above ``FREE_NUGGET`` also from the fixed start's optimum without the floor,
+    clipped to it: where the data want less noise than the floor allows, the floored optimum lies near
+    that one, on the floor, and the fixed start (clipped to the floor) can fall into another basin
+    (docs/decisions.md, section 76).
 
     Parameters
     ----------
@@ -73,6 +82,10 @@ def maximise_likelihood(Z, u, H, bounds, rng, n_restarts):
         The likelihood could not be evaluated at any start.
     """
     starts = [_fixed_start(bounds)] + [rng.uniform(bounds[:, 0], bounds[:, 1]) for _ in range(n_restarts)]
+    if bounds[-1, 0] > np.log(FREE_NUGGET):
+        free = bounds.copy()
+        free[-1, 0] = np.log(FREE_NUGGET)
+        starts.append(np.clip(_lbfgs(_fixed_start(free), Z, u, H, free).x, bounds[:, 0], bounds[:, 1]))
     best_eta, best_f = None, np.inf
     for x0 in starts:
         res = _lbfgs(x0, Z, u, H, bounds)
