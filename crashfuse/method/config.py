@@ -87,9 +87,9 @@ class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
     ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion``, ``chain``, ``theta_min``,
-    ``nugget_min`` and ``cae_decel`` left as None take the input mode's value (``MODE_DEFAULTS``), so a config always holds the values the
-    fit used. To change the input mode of a config, build a new one (``dataclasses.replace`` keeps the
-    old mode's values).
+    ``nugget_min`` and ``cae_decel`` left as None take the input mode's value (``MODE_DEFAULTS``), so a
+    config always holds the values the fit used. To change the input mode of a config, build a new one
+    (``dataclasses.replace`` keeps the old mode's values).
 
     Parameters
     ----------
@@ -212,8 +212,8 @@ class MethodConfig:
         self._set("theta_min", _positive_float("theta_min", self.theta_min))
         self._set("nugget_min", _positive_float("nugget_min", self.nugget_min))
         if self.nugget_min >= _NUGGET_MAX:
-            raise InputError(f"expected nugget_min below the bias GPs' upper bound {_NUGGET_MAX}, got {self.nugget_min}",
-                             field="nugget_min")
+            raise InputError(f"expected nugget_min below the bias GPs' upper bound {_NUGGET_MAX}, "
+                             f"got {self.nugget_min}", field="nugget_min")
         if self.theta_min >= min(self.theta_max_candidates):
             raise InputError(f"expected theta_min below every theta_max_candidates {self.theta_max_candidates}, "
                              f"got {self.theta_min}", field="theta_min")
