@@ -27,7 +27,7 @@ from crashfuse.gp.grouped import grouped_cv_log_density, grouped_residuals, scat
 from crashfuse.gp.kernels import (TRENDS, correlation, design, factor_with_nugget, independent_columns,
                                   self_correlation)
 from crashfuse.gp.likelihood import concentrated_log_likelihood
-from crashfuse.gp.optimise import choose_theta_bound, log_bounds
+from crashfuse.gp.optimise import FREE_NUGGET, choose_theta_bound, log_bounds
 from crashfuse.gp.posterior import condition, latent_variance, predictive_mean, variance_parts
 from crashfuse.gp.sampling import joint_draws
 from crashfuse.gp.subsets import condition_subset, random_subset, stratified_subset
@@ -183,7 +183,7 @@ class KrigingGP(RegressorMixin, BaseEstimator):
     # n^2 floats, 32 MB at 2000 points: refactorising (~0.1 s) is cheaper than writing and reading it
     _derived_attributes = ("L_",)
 
-    def __init__(self, *, trend="constant", theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0),
+    def __init__(self, *, trend="constant", theta_bounds=(1e-5, 1e3), nugget_bounds=(FREE_NUGGET, 10.0),
                  n_restarts=2, max_fit_points=300, max_condition_points=None,
                  normalize_y=True, blas_threads=1, random_state=None, theta_max_candidates=None,
                  calibrate_variance=False, estimate_scatter=True):

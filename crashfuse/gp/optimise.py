@@ -40,7 +40,7 @@ def log_bounds(d, theta_bounds, theta_max, nugget_bounds):
     return np.column_stack([lo, hi])
 
 
-# The nugget a floor is searched from: KrigingGP's own lower bound.
+# The GPs' own lower bound on the nugget (KrigingGP and GMMGPBias defaults); a floor above it is also searched from it.
 FREE_NUGGET = 1e-8
 
 

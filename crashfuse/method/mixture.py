@@ -15,6 +15,7 @@ from sklearn.utils.validation import check_array, check_is_fitted, validate_data
 
 from crashfuse.errors import InputError
 from crashfuse.gp.kriging import SEED_MAX, KrigingGP, data_digest
+from crashfuse.gp.optimise import FREE_NUGGET
 from crashfuse.gp.threads import controller, limit_blas
 
 __all__ = ["GMMGPBias", "TooFewPointsError", "THETA_MAX_CANDIDATES", "MIN_CLUSTER_TESTS"]
@@ -103,7 +104,7 @@ class GMMGPBias(RegressorMixin, BaseEstimator):
     """
 
     def __init__(self, *, n_clusters=1, cluster_inputs=None, assignment="select", trend="constant",
-                 theta_bounds=(1e-5, 1e3), nugget_bounds=(1e-8, 10.0), n_restarts=2,
+                 theta_bounds=(1e-5, 1e3), nugget_bounds=(FREE_NUGGET, 10.0), n_restarts=2,
                  max_fit_points=300, max_condition_points=MAX_CONDITION_POINTS, normalize_y=True, n_init=5,
                  reg_covar=1e-3, min_cluster_points=None, blas_threads=1, random_state=None,
                  theta_max_candidates=THETA_MAX_CANDIDATES, calibrate_variance=True, estimate_scatter=True,
