@@ -542,7 +542,9 @@ def _add_method_options(s) -> None:
     s.add_argument("--use-companion", action=argparse.BooleanOptionalAction, default=None,
                    help="predict a test's condition with its companion CAE run instead of the surrogate "
                         "(default: the input mode's, paper no, state yes)")
-    s.add_argument("--extra-inputs", action="store_true", help="add one-hot powertrain and drive to the bias inputs")
+    s.add_argument("--extra-inputs", action=argparse.BooleanOptionalAction, default=None,
+                   help="one-hot powertrain and drive among the bias inputs (default: the input mode's, paper no, "
+                        "state yes)")
     s.add_argument("--cae-decel", choices=("none", "unloading", "both"), default=None,
                    help="the branches whose bias inputs include the CAE deceleration at each point (the crush "
                         "stage; default: the input mode's, paper none, state unloading)")

@@ -66,8 +66,9 @@ class KrigingGP(RegressorMixin, BaseEstimator):
         reverts to 0 and the outputs are scaled but not centred), ``h(x) = [1]`` (ordinary
         kriging) or ``[1, x_1, ..., x_d]`` on standardised inputs. Linear columns that are
         constant or collinear in the training data are dropped.
-    theta_bounds : (float, float)
-        Bounds on every ``theta_i`` for inputs standardised to unit variance; the
+    theta_bounds : (float or tuple of d floats, float)
+        Bounds on every ``theta_i`` (the lower one for all inputs, or one per input) for inputs
+        standardised to unit variance; the
         correlation length ``1/sqrt(theta)`` spans 1/30 to 300 standard deviations by
         default. The low end lets the fit switch off an input: with a few tests per cluster
         the test-level inputs (v0, weights) are confounded, and a floor of 1e-3 gives

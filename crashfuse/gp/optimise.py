@@ -26,8 +26,8 @@ def log_bounds(d, theta_bounds, theta_max, nugget_bounds):
     ----------
     d : int
         Number of inputs.
-    theta_bounds : (float, float)
-        Only the lower bound is used; ``theta_max`` is the upper one.
+    theta_bounds : (float or sequence of d floats, float)
+        Only the lower bound (one for every input, or one per input) is used; ``theta_max`` is the upper one.
     theta_max : float
     nugget_bounds : (float, float)
 

@@ -15,7 +15,7 @@ import numpy as np
 from crashfuse.errors import InputError
 from crashfuse.method.hybrid import check_effects
 from crashfuse.method.mixture import GMMGPBias
-from crashfuse.method.projection import CAE_DECEL, INPUTS, TARGETS, VELOCITY
+from crashfuse.method.projection import CAE_DECEL, INPUTS, TARGETS, VELOCITY, is_label
 
 ASSIGNMENTS = ("select", "blend")  # cluster rules of GMMGPBias
 TRENDS = ("zero", "constant", "linear")  # trends of KrigingGP
@@ -35,6 +35,7 @@ MODE_DEFAULTS = {
         "theta_min": _THETA_MIN,  # the bias model's own bound: an input may drop out entirely
         "nugget_min": _NUGGET_MIN,  # the bias model's own bound: the GPs may interpolate the tests
         "cae_decel": "none",  # as published: the inputs [x, v0, w_f, w_r]
+        "extra_inputs": False,  # as published: no labels among the inputs
     },
     "state": {
         # a rate effect scales the force, so the bias relative to the CAE deceleration; chosen by
@@ -73,6 +74,10 @@ MODE_DEFAULTS = {
         # without it the unloading GP told the tests apart by their speed and predicted no correction at a
         # held-out test; on loading it is not monotone and cost test-windows (docs/decisions.md, sections 38, 69)
         "cae_decel": "unloading",
+        # the tests' powertrain and drive labels (one-hot) are inputs, their theta free of theta_min: where the
+        # labels tell the tests' bias apart (an engine of one type striking earlier) the GP separates them,
+        # elsewhere the likelihood lets them drop out (docs/decisions.md, section 78)
+        "extra_inputs": True,
     },
 }
 
@@ -87,7 +92,7 @@ class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
     ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion``, ``chain``, ``theta_min``,
-    ``nugget_min`` and ``cae_decel`` left as None take the input mode's value (``MODE_DEFAULTS``), so a
+    ``nugget_min``, ``cae_decel`` and ``extra_inputs`` left as None take the input mode's value (``MODE_DEFAULTS``), so a
     config always holds the values the fit used. To change the input mode of a config, build a new one
     (``dataclasses.replace`` keeps the old mode's values).
 
@@ -100,8 +105,10 @@ class MethodConfig:
         Bias inputs ``[x, v0, w_f, w_r]`` or ``[x, v, v0, w_f, w_r]``.
     assignment : {"select", "blend"}
         Cluster rule of :class:`crashfuse.method.mixture.GMMGPBias`.
-    extra_inputs : bool
-        Append one-hot powertrain and drive to the bias inputs.
+    extra_inputs : bool or None
+        Append one-hot powertrain and drive to the bias inputs. Their ``theta`` is bounded below by the bias
+        model's own bound, not ``theta_min``: a label cannot swing like a polynomial between tests, and the
+        likelihood may drop it entirely.
     cae_decel : {"none", "unloading", "both"} or None
         The branches whose bias inputs end with the CAE deceleration at the bias point (g): the crush
         stage, and the force an additive effect is a fraction of (docs/bias-model.md, "The CAE
@@ -131,7 +138,7 @@ class MethodConfig:
         tests' leave-one-test-out predictions predict them (:class:`crashfuse.method.onset.OnsetCorrectedBias`
         ``shrink_width``; ``state`` inputs only).
     theta_min : float or None
-        Lower bound of every GP correlation parameter ``theta`` of the bias model (> 0; the upper is
+        Lower bound of every GP correlation parameter ``theta`` of the bias model but the labels' (``extra_inputs``) (> 0; the upper is
         chosen among ``theta_max_candidates``): in standardised inputs, a correlation length of at most
         ``1 / sqrt(2 theta_min)`` standard deviations (:class:`crashfuse.gp.kriging.KrigingGP`).
     nugget_min : float or None
@@ -164,7 +171,7 @@ class MethodConfig:
     k: int = 1
     inputs: str = "paper"
     assignment: str = "select"
-    extra_inputs: bool = False
+    extra_inputs: bool | None = None
     cae_decel: str | None = None
     n_grid: int | None = 200
     use_companion: bool | None = None
@@ -225,9 +232,13 @@ class MethodConfig:
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)  # normalising a frozen instance's own field, once
 
-    def bias_params(self) -> dict:
-        """The :class:`crashfuse.method.mixture.GMMGPBias` settings besides K, assignment and the seed."""
-        return {"trend": self.trend, "pooled": self.pooled, "theta_bounds": (self.theta_min, _THETA_MAX),
+    def bias_params(self, columns=()) -> dict:
+        """The :class:`crashfuse.method.mixture.GMMGPBias` settings besides K, assignment and the seed, for
+        inputs named ``columns`` (:func:`crashfuse.method.projection.bias_columns`): a one-hot label's theta
+        bounded below by the bias model's own bound, the other inputs' by ``theta_min``."""
+        labels = [is_label(c) for c in columns]
+        theta_min = tuple(_THETA_MIN if lab else self.theta_min for lab in labels) if any(labels) else self.theta_min
+        return {"trend": self.trend, "pooled": self.pooled, "theta_bounds": (theta_min, _THETA_MAX),
                 "nugget_bounds": (self.nugget_min, _NUGGET_MAX),
                 **{name: getattr(self, name) for name in BIAS_SETTINGS}}
 

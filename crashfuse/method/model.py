@@ -41,7 +41,7 @@ from crashfuse.signals.domain import displacement_branches, rebound_work
 
 # File format version per kind, bumped when that kind's objects change their attributes (older files
 # are refused: refit); a change to one kind's objects leaves the other's files valid.
-FORMAT = {"model": 12, "surrogate": 2}
+FORMAT = {"model": 13, "surrogate": 2}
 # What a user does about a file of another format.
 _REFIT = {"model": "refit with `crashfuse fit`", "surrogate": "refit with `crashfuse prepare`"}
 CONDITION_COLUMNS = ("v0", "front_weight", "rear_weight")
@@ -540,7 +540,8 @@ def _fit_branch(data: BiasData, branch: str, config: MethodConfig, seed: int, ro
     d = data.branch(branch)
     if d.y.size == 0 and branch == "unloading":
         return None
-    est = GMMGPBias(n_clusters=config.k, assignment=config.assignment, random_state=seed, **config.bias_params())
+    est = GMMGPBias(n_clusters=config.k, assignment=config.assignment, random_state=seed,
+                    **config.bias_params(d.columns))
     if (config.onset or config.shrink) and branch == "loading":
         est = OnsetCorrectedBias(base=est, time=functools.partial(nominal_time, d.columns),
                                  window=ONSET_WINDOW if config.onset else None,

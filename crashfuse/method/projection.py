@@ -311,6 +311,11 @@ def bias_columns(inputs: str, categories: Mapping[str, Sequence[str]] | None = N
             *((CAE_COL,) if cae_decel else ()))
 
 
+def is_label(column: str) -> bool:
+    """Whether a :func:`bias_columns` name is a one-hot label (``powertrain=<level>``, ``drive=<level>``)."""
+    return column.partition("=")[0] in CATEGORIES and "=" in column
+
+
 def bias_inputs(columns: Sequence[str], x, v, v0: float, front_weight: float, rear_weight: float,
                 powertrain: str | None = None, drive: str | None = None, a_cae=None) -> np.ndarray:
     """Bias-model inputs in ``columns`` order, for training rows or a rollout state.

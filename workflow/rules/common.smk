@@ -33,10 +33,9 @@ def method_args():
         f"--n-grid {METHOD['n_grid']}",
         f"--assignment {METHOD['assignment']}",
     ]
-    flags += ["--extra-inputs"] if METHOD["extra_inputs"] else []
     for key in ("trend", "cae_decel"):  # None: each input mode's default
         flags += [f"--{key.replace('_', '-')} {METHOD[key]}"] if METHOD[key] else []
-    for key in ("use_companion", "pooled", "onset", "shrink", "chain"):  # None: each input mode's default
+    for key in ("use_companion", "extra_inputs", "pooled", "onset", "shrink", "chain"):  # None: each input mode's default
         name = key.replace("_", "-")
         flags += [] if METHOD[key] is None else [f"--{name}" if METHOD[key] else f"--no-{name}"]
     return " ".join(flags)
