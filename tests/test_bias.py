@@ -834,3 +834,37 @@ def test_shrink_profile_is_the_windowed_least_squares_scale_clipped_to_0_1():
     np.testing.assert_allclose(got, [6.0 / 8.0, 0.0, 1.0])  # 0.75; sum y m = 0 -> 0; nothing to judge by -> 1
     assert shrink_profile(np.array([0.0]), t[:2], -y[:2], m[:2], 1e-3)[0] == 0.0  # a negative scale clips to 0
     assert shrink_profile(np.array([0.0]), t[:2], 3 * m[:2], m[:2], 1e-3)[0] == 1.0  # never amplifies
+
+
+def _labelled_tests(step, seed):
+    """Eight tests' state rows and a bias over crush, plus ``step`` after 0.3 m on the tests of one label."""
+    from crashfuse.method.projection import bias_columns
+
+    rng = np.random.default_rng(seed)
+    columns = bias_columns("state", {"powertrain": ["Type I", "Type II"]}, velocity="sqrt")
+    X, y, groups = [], [], []
+    s = np.linspace(0.0, 0.6, 40)
+    for i in range(8):
+        v0, label = rng.uniform(5.0, 16.0), i % 2
+        v = v0 * np.sqrt(1.0 - 1.5 * s)
+        X.append(np.column_stack([s, np.sqrt(v), np.full(40, v0), np.full(40, 1000 + 50 * rng.standard_normal()),
+                                  np.full(40, 700 + 50 * rng.standard_normal()), np.full(40, label)]))
+        y.append(0.2 * np.sin(8 * s) + step * label * (s > 0.3) + 0.02 * rng.standard_normal(40))
+        groups.append(np.full(40, f"T{i}"))
+    return columns, np.vstack(X), np.concatenate(y), np.concatenate(groups)
+
+
+@pytest.mark.parametrize("step", [0.0, 0.3])
+def test_a_label_drops_out_where_it_tells_the_tests_bias_apart_nowhere(step):
+    """The state bounds (MethodConfig.bias_params): a label's theta free down to the bias model's own bound, so
+    the likelihood drops a label the bias does not depend on (theta_min would keep its two levels at most
+    0.67 correlated) and keeps one it does (docs/decisions.md, section 78)."""
+    from crashfuse.method.config import MethodConfig
+
+    columns, X, y, groups = _labelled_tests(step, seed=0)
+    est = GMMGPBias(n_clusters=1, random_state=0, **MethodConfig(inputs="state").bias_params(columns))
+    theta = est.fit(X, y, groups).gps_[0].theta_
+    if step:
+        assert theta[-1] > 0.1  # the label separates the tests more than theta_min alone would
+    else:
+        assert theta[-1] < 1e-3  # dropped: its tests correlate as one

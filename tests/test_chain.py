@@ -140,8 +140,10 @@ def test_a_test_held_out_gets_a_band_as_wide_as_its_errors_not_the_tests_bias(ca
     """With the chain the bias GP's latent std at a held-out mid-speed test (T06) was 10-20 times the
     errors its neighbours' refits make, the band at the tests' bias rms: +-10.6 g over 0-60 ms against
     errors of at most 2.8 g (95 %). Bounded by what the held-out errors need, the band is as wide as
-    the errors and still holds them."""
-    m = fit_model(campaign, MethodConfig(k=1, inputs="state", chain=True), holdout="T06", surrogate=surrogate)
+    the errors and still holds them. Without the labels: they halve this fold's own error (rms 9.3 -> 5.5 m/s^2)
+    but not the neighbours' held-out errors the band is bounded by (decisions.md, section 78)."""
+    m = fit_model(campaign, MethodConfig(k=1, inputs="state", chain=True, extra_inputs=False), holdout="T06",
+                  surrogate=surrogate)
     test = campaign.pulses["T06"]
     pred = predict(m, test.v0, test.front_weight, test.rear_weight, test.meta["powertrain"], test.meta["drive"],
                    n_samples=200, random_state=0, duration=float(test.time[-1]), dt=test.dt)

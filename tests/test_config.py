@@ -10,6 +10,7 @@ from crashfuse.errors import InputError
 from crashfuse.evaluation.fold import fold_settings
 from crashfuse.method.config import BIAS_SETTINGS, MODE_DEFAULTS, MethodConfig
 from crashfuse.method.mixture import GMMGPBias
+from crashfuse.method.projection import bias_columns, is_label
 
 
 @pytest.mark.parametrize("inputs", ["paper", "state"])
@@ -26,6 +27,7 @@ def test_the_two_modes_differ_where_the_method_says():
     assert (state.target, state.trend, state.pooled, state.onset, state.shrink, state.use_companion) == (
         "relative", "zero", True, True, True, True)
     assert (paper.cae_decel, state.cae_decel) == ("none", "unloading")
+    assert (paper.extra_inputs, state.extra_inputs) == (False, True)
 
 
 def test_a_default_state_config_hands_the_bias_model_its_defaults_with_the_state_bounds():
@@ -34,6 +36,14 @@ def test_a_default_state_config_hands_the_bias_model_its_defaults_with_the_state
                     nugget_bounds=(1e-2, 10.0)).get_params()
     assert GMMGPBias(n_clusters=3, **config.bias_params()).get_params() == own
     assert config.changed_bias_settings() == {}
+
+
+def test_the_labels_theta_is_bounded_by_the_bias_model_s_own_bound_the_other_inputs_by_theta_min():
+    columns = bias_columns("state", {"powertrain": ["EV", "ICE"], "drive": ["AWD", "FWD", "RWD"]}, velocity="sqrt")
+    assert [is_label(c) for c in columns] == [False] * 5 + [True] * 3
+    lower, upper = MethodConfig(inputs="state").bias_params(columns)["theta_bounds"]
+    assert lower == (0.1,) * 5 + (GMMGPBias().theta_bounds[0],) * 3 and upper == GMMGPBias().theta_bounds[1]
+    assert MethodConfig(inputs="state").bias_params(columns[:5])["theta_bounds"][0] == 0.1
 
 
 def test_a_default_paper_config_hands_the_bias_model_its_own_bounds():

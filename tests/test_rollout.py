@@ -458,7 +458,7 @@ def test_each_input_mode_has_its_default_held_out_corrections(campaign, surrogat
         est = model.bias_["loading"]
         assert est.window is not None and est.shrink_width is not None
         x, v = np.array([0.05, 0.3]), np.array([14.0, 10.0])
-        X = model.features("loading", x, v, model.condition(15.0, 1000.0, 700.0))
+        X = model.features("loading", x, v, model.condition(15.0, 1000.0, 700.0, "Type I", "FWD"))
         np.testing.assert_allclose(est.time(X), 2 * x / (15.0 + v))
         one = fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=False, **FAST), surrogate=surrogate)
         assert one.bias_["loading"].window is None and one.bias_["loading"].onset_gp_ is None

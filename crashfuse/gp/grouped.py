@@ -58,7 +58,10 @@ def grouped_residuals(eta, Z, u, H, groups):
     _, alpha, sigma2, _ = gls(L, H, u)  # alpha = P u
     Kinv = inverse_from_factor(L)[0]
     KiH = Kinv @ H
-    P = Kinv - KiH @ np.linalg.solve(H.T @ KiH, KiH.T)
+    try:
+        P = Kinv - KiH @ np.linalg.solve(H.T @ KiH, KiH.T)
+    except np.linalg.LinAlgError:  # trend columns collinear on these rows (a label's level left out with its
+        P = Kinv - KiH @ np.linalg.pinv(H.T @ KiH) @ KiH.T  # tests): the projection onto their span is still one
     e, var = np.empty(len(u)), np.empty(len(u))
     for grp in np.unique(groups):
         idx = np.flatnonzero(groups == grp)
