@@ -60,8 +60,10 @@ def grouped_residuals(eta, Z, u, H, groups):
     KiH = Kinv @ H
     try:
         P = Kinv - KiH @ np.linalg.solve(H.T @ KiH, KiH.T)
-    except np.linalg.LinAlgError:  # trend columns collinear on these rows (a label's level left out with its
-        P = Kinv - KiH @ np.linalg.pinv(H.T @ KiH) @ KiH.T  # tests): the projection onto their span is still one
+    except np.linalg.LinAlgError:
+        # trend columns collinear on these rows (a label's tests a subset left out): the projection onto
+        # their span is still defined
+        P = Kinv - KiH @ np.linalg.pinv(H.T @ KiH) @ KiH.T
     e, var = np.empty(len(u)), np.empty(len(u))
     for grp in np.unique(groups):
         idx = np.flatnonzero(groups == grp)

@@ -92,8 +92,8 @@ class MethodConfig:
     """The settings of one fit (:func:`crashfuse.method.model.fit_model`).
 
     ``target``, ``trend``, ``pooled``, ``onset``, ``shrink``, ``use_companion``, ``chain``, ``theta_min``,
-    ``nugget_min``, ``cae_decel`` and ``extra_inputs`` left as None take the input mode's value (``MODE_DEFAULTS``), so a
-    config always holds the values the fit used. To change the input mode of a config, build a new one
+    ``nugget_min``, ``cae_decel`` and ``extra_inputs`` left as None take the input mode's value (``MODE_DEFAULTS``),
+    so a config always holds the values the fit used. To change the input mode of a config, build a new one
     (``dataclasses.replace`` keeps the old mode's values).
 
     Parameters
@@ -138,7 +138,7 @@ class MethodConfig:
         tests' leave-one-test-out predictions predict them (:class:`crashfuse.method.onset.OnsetCorrectedBias`
         ``shrink_width``; ``state`` inputs only).
     theta_min : float or None
-        Lower bound of every GP correlation parameter ``theta`` of the bias model but the labels' (``extra_inputs``) (> 0; the upper is
+        Lower bound of the bias model's GP correlation parameters ``theta`` but the labels' (> 0; the upper is
         chosen among ``theta_max_candidates``): in standardised inputs, a correlation length of at most
         ``1 / sqrt(2 theta_min)`` standard deviations (:class:`crashfuse.gp.kriging.KrigingGP`).
     nugget_min : float or None
