@@ -10,8 +10,10 @@ from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel, DotProduct, WhiteKernel
 
 from crashfuse.gp.kriging import KrigingGP
+from crashfuse.method.config import MethodConfig
 from crashfuse.method.mixture import GMMGPBias, TooFewPointsError
 from crashfuse.method.onset import OnsetCorrectedBias
+from crashfuse.method.projection import bias_columns
 
 
 def _oracle_loglik(eta, Z, u, trend):
@@ -838,8 +840,6 @@ def test_shrink_profile_is_the_windowed_least_squares_scale_clipped_to_0_1():
 
 def _labelled_tests(step, seed):
     """Eight tests' state rows and a bias over crush, plus ``step`` after 0.3 m on the tests of one label."""
-    from crashfuse.method.projection import bias_columns
-
     rng = np.random.default_rng(seed)
     columns = bias_columns("state", {"powertrain": ["Type I", "Type II"]}, velocity="sqrt")
     X, y, groups = [], [], []
@@ -859,8 +859,6 @@ def test_a_label_drops_out_where_it_tells_the_tests_bias_apart_nowhere(step):
     """The state bounds (MethodConfig.bias_params): a label's theta free down to the bias model's own bound, so
     the likelihood drops a label the bias does not depend on (theta_min would keep its two levels at most
     0.67 correlated) and keeps one it does (docs/decisions.md, section 78)."""
-    from crashfuse.method.config import MethodConfig
-
     columns, X, y, groups = _labelled_tests(step, seed=0)
     est = GMMGPBias(n_clusters=1, random_state=0, **MethodConfig(inputs="state").bias_params(columns))
     theta = est.fit(X, y, groups).gps_[0].theta_

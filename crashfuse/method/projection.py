@@ -313,7 +313,8 @@ def bias_columns(inputs: str, categories: Mapping[str, Sequence[str]] | None = N
 
 def is_label(column: str) -> bool:
     """Whether a :func:`bias_columns` name is a one-hot label (``powertrain=<level>``, ``drive=<level>``)."""
-    return column.partition("=")[0] in CATEGORIES and "=" in column
+    name, sep, _ = column.partition("=")
+    return bool(sep) and name in CATEGORIES
 
 
 def bias_inputs(columns: Sequence[str], x, v, v0: float, front_weight: float, rear_weight: float,

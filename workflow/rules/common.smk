@@ -35,7 +35,7 @@ def method_args():
     ]
     for key in ("trend", "cae_decel"):  # None: each input mode's default
         flags += [f"--{key.replace('_', '-')} {METHOD[key]}"] if METHOD[key] else []
-    for key in ("use_companion", "extra_inputs", "pooled", "onset", "shrink", "chain"):  # None: each input mode's default
+    for key in ("use_companion", "extra_inputs", "pooled", "onset", "shrink", "chain"):  # None: the mode's default
         name = key.replace("_", "-")
         flags += [] if METHOD[key] is None else [f"--{name}" if METHOD[key] else f"--no-{name}"]
     return " ".join(flags)
