@@ -25,7 +25,7 @@ def test_the_two_modes_differ_where_the_method_says():
     assert (paper.target, paper.trend, paper.pooled, paper.onset, paper.shrink, paper.use_companion) == (
         "absolute", "constant", False, False, False, False)
     assert (state.target, state.trend, state.pooled, state.onset, state.shrink, state.use_companion) == (
-        "relative", "zero", True, True, True, True)
+        "relative", "zero", True, False, True, True)
     assert (paper.cae_decel, state.cae_decel) == ("none", "unloading")
     assert (paper.extra_inputs, state.extra_inputs) == (False, True)
 

@@ -25,6 +25,7 @@ from crashfuse.evaluation.fold import band_coverage
 from crashfuse.evaluation.records import read_fold_json
 from crashfuse.method.rollout import predict
 from crashfuse.method.selection import choose
+from crashfuse.method.mixture import GMMGPBias
 from crashfuse.reporting.plots import plot_evaluation
 from crashfuse.reporting.tracking import load_folds
 from crashfuse.method.surrogate import CAESurrogate
@@ -251,12 +252,12 @@ def test_cli_prepare_then_one_fold(campaign, tmp_path):
     assert main(["fit", str(folder), "--k", "2", "--inputs", "paper", "--pooled", "--n-grid", "40",
                  "--out", str(model)]) == 0
     assert load_model(model).config.pooled is True  # paper's default is False
-    assert main(["fit", str(folder), "--k", "1", "--inputs", "state", "--no-onset", "--n-grid", "40",
+    assert main(["fit", str(folder), "--k", "1", "--inputs", "state", "--onset", "--n-grid", "40",
                  "--out", str(model)]) == 0
-    assert load_model(model).config.onset is False  # state's default is True
+    assert load_model(model).config.onset is True  # state's default is False
     assert main(["fit", str(folder), "--k", "1", "--inputs", "state", "--no-shrink", "--n-grid", "40",
                  "--out", str(model)]) == 0
-    assert load_model(model).config.shrink is False and load_model(model).bias_["loading"].shrink_ is None
+    assert load_model(model).config.shrink is False and isinstance(load_model(model).bias_["loading"], GMMGPBias)
     assert main(["fit", str(folder), "--k", "1", "--inputs", "paper", "--onset", "--out", str(model)]) == 2
     assert main(["evaluate", str(folder), "--k", "0", "--out", str(tmp_path / "x")]) == 2
     assert main(["evaluate", str(folder), "--k", "1", "--holdout", "C0001", "--out", str(tmp_path / "x")]) == 2

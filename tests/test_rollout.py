@@ -449,22 +449,21 @@ def test_each_input_mode_has_its_default_clusters(campaign, surrogate, inputs, p
 
 @pytest.mark.parametrize(("inputs", "on"), [("paper", False), ("state", True)])
 def test_each_input_mode_has_its_default_held_out_corrections(campaign, surrogate, default_k1, inputs, on):
-    """state: the loading branch's model shrinks its mean and corrects its held-out error over the time since contact."""
+    """state: the loading branch's model shrinks its mean; the onset correction over the time since contact is
+    an option, off by default (decisions.md, section 79)."""
     model = default_k1[inputs]
-    assert model.config.onset is on and model.config.shrink is on
+    assert model.config.shrink is on and model.config.onset is False
     assert isinstance(model.bias_["loading"], OnsetCorrectedBias) is on
     assert isinstance(model.bias_["unloading"], GMMGPBias)
     if on:
         est = model.bias_["loading"]
-        assert est.window is not None and est.shrink_width is not None
+        assert est.window is None and est.onset_gp_ is None and est.shrink_ is not None
+        onset = fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=True, **FAST), surrogate=surrogate)
+        assert onset.bias_["loading"].window is not None and onset.bias_["loading"].shrink_width is not None
         x, v = np.array([0.05, 0.3]), np.array([14.0, 10.0])
         X = model.features("loading", x, v, model.condition(15.0, 1000.0, 700.0, "Type I", "FWD"))
-        np.testing.assert_allclose(est.time(X), 2 * x / (15.0 + v))
-        one = fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=False, **FAST), surrogate=surrogate)
-        assert one.bias_["loading"].window is None and one.bias_["loading"].onset_gp_ is None
-        assert one.bias_["loading"].shrink_ is not None
-        off = fit_model(campaign, MethodConfig(k=1, inputs=inputs, onset=False, shrink=False, **FAST),
-                        surrogate=surrogate)
+        np.testing.assert_allclose(onset.bias_["loading"].time(X), 2 * x / (15.0 + v))
+        off = fit_model(campaign, MethodConfig(k=1, inputs=inputs, shrink=False, **FAST), surrogate=surrogate)
         assert isinstance(off.bias_["loading"], GMMGPBias) and off.config.onset is off.config.shrink is False
     else:
         for name in ("onset", "shrink"):
