@@ -237,6 +237,12 @@ def test_noise_control_command_writes_a_new_campaign_and_refuses_a_full_folder(t
     assert "not empty" in capsys.readouterr().err
 
 
+def _fold_score(campaign, holdout, window, **settings):
+    """ISO overall of CAE and state K1 (50 samples) on one held-out test and window, by model."""
+    return loto.evaluate(campaign, ks=(1,), inputs=("state",), n_samples=50, holdout=holdout, windows=(window,),
+                         progress=None, **settings).iso_table.set_index("model")["overall"]
+
+
 def test_the_default_does_not_lose_a_control_test_to_a_noise_free_fit(tmp_path):
     """The second world with nothing withheld, seed 1, T02 held out (decisions.md, sections 74-76). With the
     bias GPs' nugget free down to 1e-8, the unloading GP fitted the ten tests at a nugget of 3e-6, threaded
@@ -244,9 +250,7 @@ def test_the_default_does_not_lose_a_control_test_to_a_noise_free_fit(tmp_path):
     the ``state`` floor (``nugget_min`` 1e-2) keeps the fold within 0.01 of CAE."""
     folder = tmp_path / "control"
     mv.CampaignSpec("multibody", mv.CONTROL, "realistic", 1, "table1", 150).generate(folder)
-    result = loto.evaluate(read_campaign(folder), ks=(1,), inputs=("state",), n_samples=50, holdout="T02",
-                           windows=("0-60",))
-    score = result.iso_table.set_index("model")["overall"]
+    score = _fold_score(read_campaign(folder), "T02", "0-60")
     assert score["K1"] >= score["CAE"] - 0.01
 
 
@@ -273,9 +277,7 @@ def test_a_type_i_test_between_type_ii_neighbours_keeps_its_own_type_s_bias(tmp_
     folder = tmp_path / "powertrain"
     mv.CampaignSpec("first", "powertrain", "realistic", 0, "table1", 150).generate(folder)
     campaign = read_campaign(folder)
-    scores = {extra: loto.evaluate(campaign, ks=(1,), inputs=("state",), n_samples=50, holdout="T07",
-                                   windows=("0-40",), extra_inputs=extra, progress=None)
-              .iso_table.set_index("model")["overall"] for extra in (None, False)}
+    scores = {extra: _fold_score(campaign, "T07", "0-40", extra_inputs=extra) for extra in (None, False)}
     assert scores[None]["K1"] >= scores[None]["CAE"] - 0.01
     assert scores[False]["K1"] < scores[False]["CAE"] - 0.05  # what the labels mend
 
@@ -289,8 +291,6 @@ def test_the_default_does_not_follow_a_noise_control_s_noise_at_the_onset(tmp_pa
     folder = tmp_path / "noise"
     mv.CampaignSpec("first", mv.NOISE, "realistic", 0, "table1", 150).generate(folder)
     campaign = read_campaign(folder)
-    scores = {onset: loto.evaluate(campaign, ks=(1,), inputs=("state",), n_samples=50, holdout="T03",
-                                   windows=("0-20",), onset=onset, progress=None)
-              .iso_table.set_index("model")["overall"] for onset in (None, True)}
+    scores = {onset: _fold_score(campaign, "T03", "0-20", onset=onset) for onset in (None, True)}
     assert scores[None]["K1"] >= scores[None]["CAE"] - 0.01
     assert scores[True]["K1"] < scores[True]["CAE"] - 0.05  # what the onset correction did
