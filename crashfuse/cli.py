@@ -556,7 +556,7 @@ def _add_method_options(s) -> None:
                         "paper no, state yes)")
     s.add_argument("--onset", action=argparse.BooleanOptionalAction, default=None,
                    help="correct the bias model's held-out error over the time since contact in the first 22 ms "
-                        "(state inputs only; default: on for state)")
+                        "(state inputs only; default: off)")
     s.add_argument("--shrink", action=argparse.BooleanOptionalAction, default=None,
                    help="scale the bias mean, over the time since contact, by how well the training tests' "
                         "held-out predictions predict them (state inputs only; default: on for state)")
