@@ -40,15 +40,15 @@ def smooth_errors(n: int, dt: float, inside, rms: float, draws: int, rng) -> np.
 def resolution(campaign, sizes_g, window: str, draws: int, seed: int) -> pd.DataFrame:
     """One row per test with a companion and size: ``cae`` rating, ``lost`` fraction, ``median``, ``p05``."""
     start, end = (b * MS for b in window_bounds(window))
-    rng = np.random.default_rng(seed)
     rows = []
-    for test_id in campaign.tests:
+    for i, test_id in enumerate(campaign.tests):
         companion = campaign.companion(test_id)
         if companion is None:
             continue
         test, cae = campaign.pulses[test_id].after_contact(), companion.after_contact()
         base = iso_score_many(test.time, test.decel, cae.time, cae.decel[None], start, end)["overall"][0]
         for size in sizes_g:
+            rng = np.random.default_rng([seed, i, round(size * 1e6)])  # a test's draws: the same whatever else is asked
             errors = smooth_errors(cae.time.size, float(cae.time[1] - cae.time[0]), cae.time <= end,
                                    size * G0, draws, rng)
             change = iso_score_many(test.time, test.decel, cae.time, cae.decel + errors, start, end)["overall"] - base
