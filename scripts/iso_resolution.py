@@ -22,18 +22,17 @@ from crashfuse.errors import InputError
 from crashfuse.evaluation.fold import check_windows
 from crashfuse.evaluation.iso_table import window_bounds
 from crashfuse.io.campaign import read_campaign
-from crashfuse.signals.filters import cfc_filter
+from crashfuse.signals.filters import filtered_noise
 from crashfuse.signals.iso18571 import iso_score_many
 from crashfuse.units import G0, MS
 
-PAD = 2000  # samples of noise filtered beyond each end (no filter transients inside the record)
 LOST = 0.01  # a window lost: rated more than this below the CAE
 
 
 def smooth_errors(n: int, dt: float, inside, rms: float, draws: int, rng) -> np.ndarray:
     """``draws`` white-noise records of ``n`` samples at ``dt`` s, filtered at CFC 60 and scaled to ``rms``
     (m/s^2) over the samples ``inside``; shape (draws, n)."""
-    noise = cfc_filter(rng.normal(size=(draws, n + 2 * PAD)), dt, 60)[:, PAD:-PAD]
+    noise = filtered_noise(rng, (draws, n), dt, 60)
     return noise * (rms / noise[:, inside].std(axis=1, keepdims=True))
 
 

@@ -5,7 +5,7 @@ import pytest
 from scipy import signal
 
 from crashfuse import InputError, Pulse
-from crashfuse.signals.filters import cfc_filter, filter_pulse, j211_coefficients
+from crashfuse.signals.filters import cfc_filter, filter_pulse, filtered_noise, j211_coefficients
 from crashfuse.units import G0
 
 # Frequency-response corridor of a data channel, SAE J211-1 Figure 1 = ISO 6487 Figure 1, as
@@ -137,3 +137,11 @@ def test_filter_pulse_errors_name_the_file_and_field(changes, cfc, field):
     with pytest.raises(InputError) as err:
         filter_pulse(_pulse(**changes), cfc)
     assert err.value.file == "run.csv" and err.value.field == field
+
+
+def test_filtered_noise_is_the_middle_of_a_longer_filtered_draw():
+    got = filtered_noise(np.random.default_rng(1), (2, 300), 1e-4, 60, std=2.0, pad=50)
+    expected = cfc_filter(np.random.default_rng(1).normal(0.0, 2.0, (2, 400)), 1e-4, 60)[:, 50:-50]
+    assert got.shape == (2, 300)
+    np.testing.assert_array_equal(got, expected)
+    assert filtered_noise(np.random.default_rng(1), 300, 1e-4, 60).shape == (300,)

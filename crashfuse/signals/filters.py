@@ -99,6 +99,15 @@ def cfc_filter(x, dt: float, cfc: int, axis: int = -1) -> np.ndarray:
     return signal.filtfilt(b, a, x, axis=axis, padtype="odd", padlen=pad)
 
 
+def filtered_noise(rng, shape, dt: float, cfc: int, std: float = 1.0, pad: int = 2000) -> np.ndarray:
+    """White noise of ``std`` (before the filter) filtered at CFC ``cfc`` along the last axis, ``shape`` samples at
+    ``dt`` s; drawn ``pad`` samples longer at each end and cut, so that no filter transient reaches the samples
+    kept (a test's noise runs before and after its record)."""
+    shape = (shape,) if np.isscalar(shape) else tuple(shape)
+    noise = rng.normal(0.0, std, shape[:-1] + (shape[-1] + 2 * pad,))
+    return cfc_filter(noise, dt, cfc)[..., pad:-pad]
+
+
 def filter_pulse(pulse: Pulse, cfc: int) -> Pulse:
     """The pulse at CFC ``cfc``, never filtering twice.
 

@@ -22,12 +22,11 @@ import numpy as np
 from crashfuse.errors import InputError
 from crashfuse.io.campaign import Campaign, read_campaign
 from crashfuse.io.campaign_write import write_campaign
-from crashfuse.signals.filters import cfc_filter
+from crashfuse.signals.filters import filtered_noise
 from crashfuse.units import G0
 
 NOISE_G = 2.0  # g rms of the white noise before the CFC 60 filter
 NOISE_CFC = 60
-PAD = 2000  # samples of noise filtered beyond each end of the record
 KEPT_FILES = ("world.json",)  # a generated campaign's answer key travels with it
 
 
@@ -62,8 +61,8 @@ def noise_control(campaign: Campaign, seed: int, noise_g: float = NOISE_G) -> Ca
                              field="cae_run_id")
         keep = companion.time <= own.time[-1] + 1e-9  # the test's own record length
         time = companion.time[keep]
-        noise = cfc_filter(rng.normal(0.0, noise_g, time.size + 2 * PAD), float(time[1] - time[0]), NOISE_CFC)
-        pulses[test] = dataclasses.replace(own, time=time, decel=companion.decel[keep] + G0 * noise[PAD:-PAD],
+        noise = filtered_noise(rng, time.size, float(time[1] - time[0]), NOISE_CFC, noise_g)
+        pulses[test] = dataclasses.replace(own, time=time, decel=companion.decel[keep] + G0 * noise,
                                            meta={**own.meta, "cfc": NOISE_CFC})
     conditions = campaign.conditions.copy()
     if "pulse_path" in conditions:
