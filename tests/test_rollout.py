@@ -110,8 +110,8 @@ class KnownGP:
     def __init__(self, sigma, length, scatter=0.0, held_out=np.inf):
         self.sigma, self.length, self.scatter, self.held_out = sigma, length, scatter, held_out
 
-    def predict(self, X):
-        return np.zeros(len(X))
+    def predict(self, X, return_std=False):
+        return (np.zeros(len(X)), np.full(len(X), self.sigma)) if return_std else np.zeros(len(X))
 
     def scatter_std(self, X):
         return np.full(len(X), self.scatter)
@@ -180,7 +180,8 @@ def test_relative_scatter_scales_with_the_floored_cae_decel(campaign, model):
 def test_a_relative_band_is_bounded_by_what_the_held_out_errors_need(campaign, model):
     """A latent std 20 times what the tests' held-out errors need (a GP fitted to smooth data, its
     variance unbounded by them) is cut to that need, scatter and draws alike; a need above the
-    latent std leaves the band alone, and so does a condition beyond the tests."""
+    latent std leaves the band alone. Beyond the tests the band keeps the GP's own spread, the draws
+    the need at the nearest condition inside the tests' range."""
     from crashfuse.method.projection import bias_scale
     config = dataclasses.replace(model.config, target="relative", use_companion=True)
     early = None
@@ -193,15 +194,21 @@ def test_a_relative_band_is_bounded_by_what_the_held_out_errors_need(campaign, m
         scale = bias_scale(pred.cae_decel[early])
         np.testing.assert_allclose(half, 1.959964 * expected * scale, rtol=0.1)
         assert np.all(pred.decel_scatter[early] <= min(0.1, held_out) * scale * (1 + 1e-9))
-    # Beyond the tests' speeds their held-out errors say nothing: the GP's own spread stays.
+    # Beyond the tests' speeds their held-out errors say nothing: the band keeps the GP's own spread,
+    # as wide as without the held-out bound, but the draws, whose spread moves the Monte Carlo mean, do not.
     test, v_out = campaign.pulses["T08"], 1.1 * model.ranges["condition"][1][0]
-    known = dataclasses.replace(model, bias_={"loading": KnownGP(0.2, 0.05, 0.0, 0.01), "unloading": None},
-                                config=config)
-    pred = predict(known, v_out, test.front_weight, test.rear_weight, test.meta["powertrain"], test.meta["drive"],
-                   n_samples=4000, random_state=3)
-    early = (pred.time >= 0.001) & (pred.time <= 0.005)
-    half = 0.5 * (pred.decel_latent_hi - pred.decel_latent_lo)[early]
-    assert pred.extrapolation["v0"] and np.all(half > 5 * 1.959964 * 0.01 * bias_scale(pred.cae_decel[early]))
+    preds = [predict(dataclasses.replace(model, bias_={"loading": KnownGP(0.2, 0.05, 0.0, need), "unloading": None},
+                                         config=config),
+                     v_out, test.front_weight, test.rear_weight, test.meta["powertrain"], test.meta["drive"],
+                     n_samples=4000, random_state=3) for need in (0.01, np.inf)]
+    early = (preds[0].time >= 0.001) & (preds[0].time <= 0.005)
+    bounded, free = (0.5 * (p.decel_latent_hi - p.decel_latent_lo)[early] for p in preds)
+    assert preds[0].extrapolation["v0"]
+    assert np.all(bounded > 5 * 1.959964 * 0.01 * bias_scale(preds[0].cae_decel[early]))
+    np.testing.assert_allclose(bounded, free, rtol=0.05)
+    mid = (preds[0].time >= 0.02) & (preds[0].time <= 0.04)
+    spread = [(p.velocity_hi - p.velocity_lo)[mid] for p in preds]
+    assert np.all(spread[0] < 0.1 * spread[1])
 
 
 def test_fitted_scatter_recovers_offsets_between_replicates():

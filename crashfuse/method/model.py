@@ -313,6 +313,11 @@ class FittedModel:
         return {name: bool(x[i] < lo[i] * (1 - _MATCH_RTOL) or x[i] > hi[i] * (1 + _MATCH_RTOL))
                 for i, name in enumerate(CONDITION_COLUMNS)}
 
+    def nearest_inside(self, cond: Condition) -> Condition:
+        """``cond`` with each condition column clipped into the training tests' range (itself inside it)."""
+        lo, hi = self.ranges["condition"]
+        return dataclasses.replace(cond, **dict(zip(CONDITION_COLUMNS, map(float, np.clip(cond.array(), lo, hi)))))
+
     def save(self, path: str | os.PathLike, surrogate_file: str | os.PathLike | None = None) -> None:
         """Write the model file atomically (:mod:`crashfuse.io.persist`, kind ``model``).
 

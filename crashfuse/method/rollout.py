@@ -284,7 +284,8 @@ def predict(model, v0, front_weight, rear_weight, powertrain=None, drive=None, n
     mc = rollout(_decel_fn(curve, draws, model.relative), np.full(n_samples, cond.v0), dt, n_steps)
     mc, mean_traj = (_read_through(model, traj) for traj in (mc, mean_traj))
     scatter = decel_scatter(model, curve, mean_traj, cond) if band == "test" else np.zeros(mean_traj.time.size)
-    return _summarise(mc, mean_traj, cae, cond, model.extrapolation(cond, mean_traj), scatter, band)
+    beyond = extrapolation_std(model, curve, mean_traj, cond)
+    return _summarise(mc, mean_traj, cae, cond, model.extrapolation(cond, mean_traj), scatter, beyond, band)
 
 
 def _prepare(model, cond, n_samples: int, rng, dt: float, n_steps: int):
@@ -372,8 +373,9 @@ def _mean_range(model, branch) -> tuple[float, float]:
 def _drawn_bias(model, branch, cond, mean: _BranchBias | None, path: Trajectory, n_samples, rng, curve):
     """Joint latent draws of one branch's bias along the mean-function rollout's path.
 
-    For a relative target, where the draws' std in m/s^2 exceeds :func:`_bound` they are shrunk towards
-    the mean to it.
+    For a relative target, where the draws' std in m/s^2 exceeds :func:`_bound` at the nearest
+    condition inside the training tests' range they are shrunk towards the mean to it (beyond the
+    range the rest of the GP's std is the band's: :func:`extrapolation_std`).
     """
     if mean is None:
         return None
@@ -385,35 +387,63 @@ def _drawn_bias(model, branch, cond, mean: _BranchBias | None, path: Trajectory,
     dev = g - est.predict(X)[None, :]
     scale = _scale(model, curve, branch, x)
     sd = dev.std(axis=0) * scale
-    dev *= np.minimum(1.0, _bound(model, branch, scale, X, cond) / np.maximum(sd, np.finfo(float).tiny))
+    bound = _bound(model, branch, scale, model.features(branch, x, v, model.nearest_inside(cond), curve))
+    dev *= np.minimum(1.0, bound / np.maximum(sd, np.finfo(float).tiny))
     return _BranchBias(mean.x_hi, mean.mean_table, mean.v_grid, dev)
 
 
-def _bound(model, branch, scale, X, cond) -> np.ndarray:
-    """The most the band's std may spread the bias of ``branch`` at inputs ``X`` (m, d) of condition
-    ``cond``, where the learnt bias has ``scale`` (m/s^2 per unit, :func:`_scale`): for a relative target
-    the smallest of the training tests' bias rms, in m/s^2
-    (:meth:`~crashfuse.method.model.FittedModel.bias_spread`), their rms in the target's units
-    (:meth:`~crashfuse.method.model.FittedModel.target_spread`) and - for a condition inside the
-    training tests' range - the std their held-out errors need near ``X``
-    (:meth:`~crashfuse.method.mixture.GMMGPBias.held_out_std`), the last two times ``scale``; else none.
+def _bound(model, branch, scale, X) -> np.ndarray:
+    """The most the draws' std may spread the bias of ``branch`` at inputs ``X`` (m, d) of a condition
+    inside the training tests' range (:meth:`~crashfuse.method.model.FittedModel.nearest_inside`), where
+    the learnt bias has ``scale`` (m/s^2 per unit, :func:`_scale`): for a relative target the smallest of
+    :func:`_spread` and the std the training tests' held-out errors need near ``X``
+    (:meth:`~crashfuse.method.mixture.GMMGPBias.held_out_std`) times ``scale``; else none.
 
     A relative target's GP serves the small CAE decelerations, where noise is a large fraction, and
     the peak alike; its std times a 30 g pulse spread a model fitted to noise over a 20 g wide band.
-    The m/s^2 rms is the fast tests' bias, which at a slow test's 2 g onset is the whole pulse: a GP
-    fitted to smooth bias data (the tests' body decelerations, :mod:`crashfuse.method.chain`) took a
-    near-infinite variance there and spread an 8 mph test's draws by +-10 g at contact. Held to the two
-    rms, the same GP still spread a mid-speed test's band to +-10 g around errors within 3 g (its latent
-    std 10-40 times its held-out errors): the third bound is the band those errors need. They are errors
-    among the tests, so a condition beyond them (a test slower than every training test) keeps the GP's
-    own spread. The ``paper`` inputs learn the bias in m/s^2, as published, and are left alone.
+    Held to :func:`_spread`, the same GP still spread a mid-speed test's band to +-10 g around errors
+    within 3 g (its latent std 10-40 times its held-out errors): the held-out bound is the band those
+    errors need. The ``paper`` inputs learn the bias in m/s^2, as published, and are left alone.
     """
     if not model.relative:
         return np.full(np.shape(scale), np.inf)
-    spread = np.minimum(model.bias_spread(branch), model.target_spread(branch) * scale)
-    if any(model.condition_outside(cond).values()):
-        return spread
-    return np.minimum(spread, model.bias_[branch].held_out_std(X) * scale)
+    return np.minimum(_spread(model, branch, scale), model.bias_[branch].held_out_std(X) * scale)
+
+
+def _spread(model, branch, scale) -> np.ndarray:
+    """The training tests' bias rms, in m/s^2 (:meth:`~crashfuse.method.model.FittedModel.bias_spread`)
+    and in the target's units times ``scale`` (:meth:`~crashfuse.method.model.FittedModel.target_spread`),
+    the smaller: the m/s^2 rms is the fast tests' bias, which at a slow test's 2 g onset is the whole
+    pulse; a GP fitted to smooth bias data took a near-infinite variance there and spread an 8 mph
+    test's draws by +-10 g at contact."""
+    return np.minimum(model.bias_spread(branch), model.target_spread(branch) * scale)
+
+
+def extrapolation_std(model, curve, path: Trajectory, cond) -> np.ndarray:
+    """The bias function's std (m/s^2) the draws do not carry, along a one-sample rollout, shape (n,).
+
+    Zero for a condition inside the training tests' range. Beyond it (a test slower, faster, lighter
+    or heavier than every training test) the held-out errors, errors among the tests, do not say how
+    far off the bias model is: the GP's own latent std (at most :func:`_spread`) does. The draws keep
+    :func:`_bound` at the nearest condition inside the range, and this is the rest of the GP's std,
+    in quadrature, which the band adds about the Monte Carlo mean (:func:`_widened`). Draws spread as
+    wide as :func:`_spread` stop an 8 mph test anywhere within +-10 ms of its 44 ms, and their mean
+    falls through the unloading as no pulse does (docs/decisions.md, section 81).
+    """
+    out = np.zeros(path.time.size)
+    if not model.relative or not any(model.condition_outside(cond).values()):
+        return out
+    inside = model.nearest_inside(cond)
+    for branch in BRANCHES:
+        est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
+        if est is None or not on.any():
+            continue
+        scale = _scale(model, curve, branch, x)
+        latent = np.minimum(est.predict(model.features(branch, x, v, cond, curve), return_std=True)[1] * scale,
+                            _spread(model, branch, scale))
+        drawn = np.minimum(latent, _bound(model, branch, scale, model.features(branch, x, v, inside, curve)))
+        out[on] = np.sqrt(latent**2 - drawn**2)
+    return out
 
 
 def _rebound_bounded(model, curve, bias: _BranchBias | None, path: Trajectory) -> _BranchBias | None:
@@ -477,41 +507,44 @@ def decel_scatter(model, curve, path: Trajectory, cond) -> np.ndarray:
 
     The bias model's :meth:`~crashfuse.method.mixture.GMMGPBias.scatter_std` at the path's inputs, in
     deceleration units (times :func:`crashfuse.method.projection.bias_scale` of the CAE deceleration
-    there for a relative target, then at most :func:`_bound`); 0 after separation and on a branch
-    without a model.
+    there for a relative target, then at most :func:`_bound` at the nearest condition inside the
+    training tests' range); 0 after separation and on a branch without a model.
     """
+    inside = model.nearest_inside(cond)
     out = np.zeros(path.time.size)
     for branch in BRANCHES:
         est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
         if est is None or not on.any():
             continue
         scale = _scale(model, curve, branch, x)
-        X = model.features(branch, x, v, cond, curve)
-        out[on] = np.minimum(est.scatter_std(X) * scale, _bound(model, branch, scale, X, cond))
+        bound = _bound(model, branch, scale, model.features(branch, x, v, inside, curve))
+        out[on] = np.minimum(est.scatter_std(model.features(branch, x, v, cond, curve)) * scale, bound)
     return out
 
 
-def _test_band(mean, lo, hi, scatter):
-    """The latent band widened by the scatter std, in quadrature with each side's distance from the mean.
+def _widened(mean, lo, hi, std):
+    """The band (lo, hi) widened by ``std``, in quadrature with each side's distance from the mean.
 
-    Never narrower than the latent band (min/max guard the rounding of sqrt(d^2) where the scatter is 0).
+    Never narrower than the band given (min/max guard the rounding of sqrt(d^2) where the std is 0).
     """
     z = norm.ppf(BAND[1] / 100)
-    widen = (z * scatter) ** 2
+    widen = (z * std) ** 2
     return (np.minimum(lo, mean - np.sqrt(np.maximum(mean - lo, 0.0) ** 2 + widen)),
             np.maximum(hi, mean + np.sqrt(np.maximum(hi - mean, 0.0) ** 2 + widen)))
 
 
-def _summarise(mc: Trajectory, mean_traj: Trajectory, cae: Trajectory, cond, flags, scatter, band) -> Prediction:
+def _summarise(mc: Trajectory, mean_traj: Trajectory, cae: Trajectory, cond, flags, scatter, beyond,
+               band) -> Prediction:
     lo, hi = BAND
     pct = {name: np.percentile(arr, [lo, hi], axis=0) for name, arr in
            (("decel", mc.decel), ("velocity", mc.v), ("displacement", mc.s))}
     mean = mc.decel.mean(axis=0)
-    shown = _test_band(mean, *pct["decel"], scatter) if band == "test" else pct["decel"]
+    latent = _widened(mean, *pct["decel"], beyond)
+    shown = _widened(mean, *latent, scatter) if band == "test" else latent
     return Prediction(
         time=mc.time,
         decel=mean, decel_lo=shown[0], decel_hi=shown[1],
-        decel_latent_lo=pct["decel"][0], decel_latent_hi=pct["decel"][1], decel_scatter=scatter,
+        decel_latent_lo=latent[0], decel_latent_hi=latent[1], decel_scatter=scatter,
         velocity=mc.v.mean(axis=0), velocity_lo=pct["velocity"][0], velocity_hi=pct["velocity"][1],
         displacement=mc.s.mean(axis=0), displacement_lo=pct["displacement"][0],
         displacement_hi=pct["displacement"][1],
