@@ -27,11 +27,12 @@ Monte Carlo ensemble. The scored prediction, ``Prediction.decel``, is the **Mont
 the mean over samples of the deceleration at each time.
 
 Two deceleration bands. The *latent* band (``decel_latent_lo/hi``) is the ensemble's 2.5/97.5 %
-percentiles: the bias function's uncertainty only. A new physical test also scatters about the
-bias function (near-replicate tests differ by 0.3-1 g), so the reported band for ``band='test'``
-(default) widens the latent one by the bias model's test-to-test scatter
-(:meth:`crashfuse.method.mixture.GMMGPBias.scatter_std`, calibrated on grouped leave-one-test-out residuals),
-in quadrature on each side of the Monte Carlo mean. ``band='latent'`` reports the latent band.
+percentiles, for a condition beyond the training tests' widened by the bias function's std the draws
+do not carry (:func:`extrapolation_std`): the bias function's uncertainty only. A new physical test
+also scatters about the bias function (near-replicate tests differ by 0.3-1 g), so the reported band
+for ``band='test'`` (default) widens the latent one by the bias model's test-to-test scatter
+(:meth:`crashfuse.method.mixture.GMMGPBias.scatter_std`, calibrated on grouped leave-one-test-out
+residuals), in quadrature on each side of the Monte Carlo mean. ``band='latent'`` reports the latent band.
 The draws, the mean and every other band are the same either way.
 """
 
