@@ -27,7 +27,7 @@ Monte Carlo ensemble. The scored prediction, ``Prediction.decel``, is the **Mont
 the mean over samples of the deceleration at each time.
 
 Two deceleration bands. The *latent* band (``decel_latent_lo/hi``) is the ensemble's 2.5/97.5 %
-percentiles, for a condition beyond the training tests' widened by the bias function's std the draws
+percentiles, for a condition beyond the training tests' range widened by the bias function's std the draws
 do not carry (:func:`extrapolation_std`): the bias function's uncertainty only. A new physical test
 also scatters about the bias function (near-replicate tests differ by 0.3-1 g), so the reported band
 for ``band='test'`` (default) widens the latent one by the bias model's test-to-test scatter
@@ -428,7 +428,7 @@ def extrapolation_std(model, curve, path: Trajectory, cond) -> np.ndarray:
     far off the bias model is: the GP's own latent std (at most :func:`_spread`) does. The draws keep
     :func:`_bound` at the nearest condition inside the range, and this is the rest of the GP's std,
     in quadrature, which the band adds about the Monte Carlo mean (:func:`_widened`). Draws spread as
-    wide as :func:`_spread` stop an 8 mph test anywhere within +-10 ms of its 44 ms, and their mean
+    wide as :func:`_spread` stopped an 8 mph test anywhere between 36 and 55 ms (the test: 44 ms); their mean
     falls through the unloading as no pulse does (docs/decisions.md, section 81).
     """
     out = np.zeros(path.time.size)
