@@ -48,7 +48,8 @@ def resolution(campaign, sizes_g, window: str, draws: int, seed: int) -> pd.Data
         base = iso_score_many(test.time, test.decel, cae.time, cae.decel[None], start, end)["overall"][0]
         for size in sizes_g:
             rng = np.random.default_rng([seed, i, round(size * 1e6)])  # a test's draws: the same whatever else is asked
-            errors = smooth_errors(cae.time.size, float(cae.time[1] - cae.time[0]), cae.time <= end,
+            inside = (cae.time >= start) & (cae.time <= end)
+            errors = smooth_errors(cae.time.size, float(cae.time[1] - cae.time[0]), inside,
                                    size * G0, draws, rng)
             change = iso_score_many(test.time, test.decel, cae.time, cae.decel + errors, start, end)["overall"] - base
             rows.append(dict(test_id=test_id, rms_g=size, cae=base, lost=np.mean(change < -LOST),
