@@ -2,25 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from crashfuse.io.campaign_write import write_campaign
 from crashfuse.world.generate import build
 from crashfuse.world.presets import resolve
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "iso_resolution.py"
+from project_scripts import load_script
 
 
 @pytest.fixture(scope="module")
 def script():
-    spec = importlib.util.spec_from_file_location("iso_resolution", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("iso_resolution")
 
 
 @pytest.fixture(scope="module")
