@@ -434,16 +434,9 @@ def extrapolation_std(model, curve, path: Trajectory, cond) -> np.ndarray:
     out = np.zeros(path.time.size)
     if not model.relative or not any(model.condition_outside(cond).values()):
         return out
-    inside = model.nearest_inside(cond)
-    for branch in BRANCHES:
-        est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
-        if est is None or not on.any():
-            continue
-        scale = _scale(model, curve, branch, x)
-        latent = np.minimum(est.predict(model.features(branch, x, v, cond, curve), return_std=True)[1] * scale,
-                            _spread(model, branch, scale))
-        drawn = np.minimum(latent, _bound(model, branch, scale, model.features(branch, x, v, inside, curve)))
-        out[on] = np.sqrt(latent**2 - drawn**2)
+    for branch, est, on, scale, X, bound in _along(model, curve, path, cond):
+        latent = np.minimum(est.predict(X, return_std=True)[1] * scale, _spread(model, branch, scale))
+        out[on] = np.sqrt(latent**2 - np.minimum(latent, bound) ** 2)
     return out
 
 
@@ -511,16 +504,24 @@ def decel_scatter(model, curve, path: Trajectory, cond) -> np.ndarray:
     there for a relative target, then at most :func:`_bound` at the nearest condition inside the
     training tests' range); 0 after separation and on a branch without a model.
     """
-    inside = model.nearest_inside(cond)
     out = np.zeros(path.time.size)
+    for _, est, on, scale, X, bound in _along(model, curve, path, cond):
+        out[on] = np.minimum(est.scatter_std(X) * scale, bound)
+    return out
+
+
+def _along(model, curve, path: Trajectory, cond):
+    """Per branch with a bias model that ``path`` (a one-sample rollout) reaches: the branch, its model, the
+    path's samples on it (bool, shape (n,)), :func:`_scale` there, the inputs ``X`` at ``cond`` and
+    :func:`_bound` at the nearest condition inside the training tests' range."""
+    inside = model.nearest_inside(cond)
     for branch in BRANCHES:
         est, (on, x, v) = model.bias_.get(branch), path.on_branch(branch)
         if est is None or not on.any():
             continue
         scale = _scale(model, curve, branch, x)
         bound = _bound(model, branch, scale, model.features(branch, x, v, inside, curve))
-        out[on] = np.minimum(est.scatter_std(model.features(branch, x, v, cond, curve)) * scale, bound)
-    return out
+        yield branch, est, on, scale, model.features(branch, x, v, cond, curve), bound
 
 
 def _widened(mean, lo, hi, std):
