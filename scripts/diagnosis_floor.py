@@ -12,9 +12,9 @@ record (in g), the difference from the companion run of:
 - ``rollout``: the diagnosis' own rollout of the CAE curve without effects, ``loading`` the same up to the
   rollout's turnaround (its largest crush) and ``after`` from there on;
 
-and ``step``: how far the rollout's static CAE deceleration steps across the run's largest crush (one table
-cell each side, g), where the reference curve changes to the faster CAE curve a rollout that crushes further
-meets. Run from the project folder::
+and ``step``: how far the rollout's static CAE deceleration steps across the run's largest crush (between the
+table's two nodes about it, g), where the reference changes to the faster CAE curve that a rollout crushing
+further meets. Run from the project folder::
 
     .venv/bin/python scripts/diagnosis_floor.py CAMPAIGN
 """
@@ -51,9 +51,8 @@ def floor(campaign) -> pd.DataFrame:
         if cae is None:
             continue
         inside = case.mask[i]
-        on_grid = [np.interp(case.time, p.time, a) for p, a in
-                   ((cae, cae.decel), (test, test.decel), (test, chain.body(test.time, test.decel)))]
-        ref, raw, body = on_grid
+        ref, raw, body = (np.interp(case.time, p.time, a) for p, a in
+                          ((cae, cae.decel), (test, test.decel), (test, chain.body(test.time, test.decel))))
         turned = case.time >= case.time[np.argmax(traj.s[i])]
         curve = cae_curve(campaign, test, surrogate)
         cell = int(curve.s_max / case.plant.s_step)
