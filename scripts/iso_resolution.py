@@ -46,9 +46,9 @@ def resolution(campaign, sizes_g, window: str, draws: int, seed: int) -> pd.Data
             continue
         test, cae = campaign.pulses[test_id].after_contact(), companion.after_contact()
         base = iso_score_many(test.time, test.decel, cae.time, cae.decel[None], start, end)["overall"][0]
+        inside = (cae.time >= start) & (cae.time <= end)
         for size in sizes_g:
             rng = np.random.default_rng([seed, i, round(size * 1e6)])  # a test's draws: the same whatever else is asked
-            inside = (cae.time >= start) & (cae.time <= end)
             errors = smooth_errors(cae.time.size, float(cae.time[1] - cae.time[0]), inside,
                                    size * G0, draws, rng)
             change = iso_score_many(test.time, test.decel, cae.time, cae.decel + errors, start, end)["overall"] - base
