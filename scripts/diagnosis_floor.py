@@ -8,7 +8,8 @@ record (in g), the difference from the companion run of:
 
 - ``raw``: the measured record;
 - ``body``: the record read back through the tests' measurement chain fitted on every test
-  (:func:`crashfuse.method.model.fit_chain`, the mount the method's ``chain`` setting takes out);
+  (:func:`crashfuse.method.model.fit_chain`, the mount the method's ``chain`` setting takes out; the record
+  itself where the tests do not ring);
 - ``rollout``: the diagnosis' own rollout of the CAE curve without effects, ``loading`` the same up to the
   rollout's turnaround (its largest crush) and ``after`` from there on;
 
@@ -39,9 +40,9 @@ from crashfuse.units import G0
 def floor(campaign) -> pd.DataFrame:
     """One row per test with a companion run: ``raw``, ``body``, ``rollout``, ``loading``, ``after`` and
     ``step`` (g); empty when no test names one."""
-    chain = fit_chain(campaign, campaign.tests)
-    if chain is None:
+    if all(campaign.companion(t) is None for t in campaign.tests):
         return pd.DataFrame()
+    chain = fit_chain(campaign, campaign.tests)  # None: the tests do not ring, their body is their record
     surrogate = CAESurrogate(random_state=0).fit(campaign)
     case = test_case(campaign, surrogate)
     traj = simulate(case.plant, (), {}, DT, case.n_steps)
@@ -52,7 +53,8 @@ def floor(campaign) -> pd.DataFrame:
             continue
         inside = case.mask[i]
         ref, raw, body = (np.interp(case.time, p.time, a) for p, a in
-                          ((cae, cae.decel), (test, test.decel), (test, chain.body(test.time, test.decel))))
+                          ((cae, cae.decel), (test, test.decel),
+                           (test, test.decel if chain is None else chain.body(test.time, test.decel))))
         turned = case.time >= case.time[np.argmax(traj.s[i])]
         curve = cae_curve(campaign, test, surrogate)
         cell = int(curve.s_max / case.plant.s_step)

@@ -468,14 +468,17 @@ def fit_chain(campaign: Campaign, tests) -> MountResonance | None:
     """The tests' measurement chain fitted on ``tests`` and their companion CAE runs (on the test's times).
 
     None where none of ``tests`` names a companion run: the bias is then learnt against the surrogate's
-    curves, and the chain is not fitted (a stated fallback, recorded as the model's ``chain``).
+    curves, and the chain is not fitted (a stated fallback, recorded as the model's ``chain``). None too
+    where the fitted mount removes nothing of the difference (:attr:`MountResonance.removes_nothing`):
+    tests that do not ring are read as they are.
     """
     pairs = []
     for t in tests:
         test, cae = training_test(campaign, t), campaign.companion(t)
         if cae is not None:
             pairs.append((test.time, test.decel, np.interp(test.time, cae.time, cae.decel)))
-    return MountResonance().fit(pairs) if pairs else None
+    chain = MountResonance().fit(pairs) if pairs else None
+    return None if chain is None or chain.removes_nothing else chain
 
 
 def training_data(campaign: Campaign, tests, config: MethodConfig, surrogate: CAESurrogate,
