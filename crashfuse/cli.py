@@ -118,10 +118,12 @@ def _world_realism(args) -> int:
 
 
 def _world_noise_control(args) -> int:
-    from crashfuse.world.noise_control import make_noise_control
+    from crashfuse.world.noise_control import NOISE_G, make_noise_control
 
-    folder = make_noise_control(args.campaign, args.out, args.seed)
-    print(f"wrote {folder}: the tests of {args.campaign} replaced by their CAE runs plus filtered noise (seed {args.seed})")
+    noise_g = NOISE_G if args.noise_g is None else args.noise_g
+    folder = make_noise_control(args.campaign, args.out, args.seed, noise_g)
+    print(f"wrote {folder}: the tests of {args.campaign} replaced by their CAE runs plus {noise_g:g} g rms of "
+          f"CFC 60 noise (seed {args.seed})")
     return 0
 
 
@@ -699,6 +701,8 @@ def _add_world_noise_control(wsub) -> None:
     _add_campaign(s)
     s.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     s.add_argument("--seed", type=_seed, default=0, help="seed of the noise (default 0)")
+    s.add_argument("--noise-g", type=float, default=None,
+                   help="noise in g rms after CFC 60 (default: what NHTSA 10146's accelerometers read before contact)")
     s.set_defaults(func=_world_noise_control)
 
 
@@ -998,6 +1002,7 @@ _FLAGS = {
                        "overrides": "--effect-param", "seed": "--seed", "matrix": "--matrix", "n_cae": "--n-cae",
                        "n_tests": "--n-tests"},
     "world calibrate": {"max_nfev": "--max-evals"},
+    "world noise-control": {"noise_g": "--noise-g"},
     "world validate": {"withhold": "--effects", "strength": "--strengths", "seed": "--seeds", "worlds": "--worlds"},
     "world validate-method": {"worlds": "--worlds", "withheld": "--withheld", "strengths": "--strengths",
                               "seeds": "--seeds", "matrices": "--matrices", "n_cae": "--n-cae",

@@ -38,7 +38,7 @@ from crashfuse.world import presets as first_presets
 from crashfuse.world.multibody import WORLD_VERSION as SECOND_VERSION
 from crashfuse.world.multibody import generate as second_generate
 from crashfuse.world.multibody import presets as second_presets
-from crashfuse.world.noise_control import make_noise_control
+from crashfuse.world.noise_control import NOISE_G, make_noise_control
 
 WORLDS = ("first", "multibody")
 STRENGTHS = ("realistic", "subtle")
@@ -94,9 +94,11 @@ class CampaignSpec:
 
     @property
     def key(self) -> str:
-        """Folder name: every field and the world's version, so a new world version regenerates."""
+        """Folder name: every field and the world's version, so a new world version regenerates (and the noise
+        control's level, so a new level does)."""
         version = world_version(self.world).removeprefix(f"{self.world}-")
-        return (f"{self.world}-v{version}-{self.matrix}-cae{self.n_cae}-{self.withheld}-"
+        withheld = f"{NOISE}{NOISE_G:g}g" if self.withheld == NOISE else self.withheld
+        return (f"{self.world}-v{version}-{self.matrix}-cae{self.n_cae}-{withheld}-"
                 f"{self.strength}-seed{self.seed}")
 
     def generate(self, folder: Path) -> Path:
