@@ -208,8 +208,9 @@ def test_the_noise_control_is_each_test_s_own_cae_run_plus_filtered_noise(tmp_pa
     for campaign, level in ((made, 0.044), (loud, 0.25)):
         rms = []
         for test in campaign.tests:
-            assert campaign.pulses[test].time[-1] == plain.pulses[test].time[-1]  # the test's record length
-            noise = (campaign.pulses[test].decel - campaign.companion(test).decel[:campaign.pulses[test].time.size]) / G0
+            pulse = campaign.pulses[test]
+            assert pulse.time[-1] == plain.pulses[test].time[-1]  # the test's record length
+            noise = (pulse.decel - campaign.companion(test).decel[:pulse.time.size]) / G0
             rms.append(noise.std())
             assert np.abs(noise).max() < 6 * level, test
             assert np.abs(noise[:50]).max() < 4 * level and np.abs(noise[-50:]).max() < 4 * level, test  # no transient

@@ -10,6 +10,8 @@ from hypothesis import HealthCheck, given, settings
 
 from crashfuse.errors import InputError
 from crashfuse.io.nhtsa import barrier_channels, read_barrier_force, read_header, read_nhtsa
+from crashfuse.signals.filters import cfc_filter
+from crashfuse.world.noise_control import NOISE_G
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 V10146 = SHARED / "data" / "nhtsa" / "v10146"
@@ -64,6 +66,18 @@ def test_10146_pulse_is_physical():
     p = read_nhtsa(V10146).after_contact()
     dv = np.trapezoid(p.decel[p.time <= 0.15], p.time[p.time <= 0.15])
     assert p.v0 < dv < 1.25 * p.v0
+
+
+@real
+def test_the_noise_controls_level_is_what_10146s_accelerometers_read_before_contact():
+    """``NOISE_G``: each X accelerometer at CFC 60 over the 45 ms before contact reads 0.040 and 0.047 g
+    (the two averaged, as the default pulse is, 0.038 g: the control's level is one accelerometer's)."""
+    levels = []
+    for channel in (93, 94):
+        t, x = _raw(channel)
+        filtered = cfc_filter(x - x[t < 0].mean(), t[1] - t[0], 60)
+        levels.append(filtered[t < -0.005].std())
+    assert np.mean(levels) == pytest.approx(NOISE_G, abs=0.002)
 
 
 @real
