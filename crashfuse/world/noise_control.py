@@ -14,6 +14,7 @@ the campaign writer), so any campaign, not only a synthetic one, can be turned i
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from pathlib import Path
 
@@ -95,9 +96,10 @@ def _check_level(noise_g) -> None:
         raise InputError(f"expected a noise level in g rms (a finite number >= 0), got {noise_g!r}", field="noise_g")
 
 
+@functools.lru_cache(maxsize=8)
 def _filter_gain(dt: float) -> float:
     """The rms of unit white noise at ``dt`` s after the CFC 60 filter: the root sum of squares of its
-    impulse response."""
+    impulse response (once per sampling step: a campaign's tests share one)."""
     impulse = np.zeros(8001)
     impulse[4000] = 1.0
     return float(np.sqrt(np.sum(cfc_filter(impulse, dt, NOISE_CFC) ** 2)))
