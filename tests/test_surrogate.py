@@ -124,11 +124,14 @@ def test_a_run_cut_before_separation_is_continued_or_stood_in_for(world, fitted)
     u_join = br.unloading.x[-1]
     step = joined.unloading(u_join + 1e-4) - joined.unloading(u_join)
     assert abs(step) < 0.02 * br.unloading.decel[-1] < abs(stand_in.unloading(u_join) - br.unloading.decel[-1])
-    # A stand-in that separates before the record's spring-back ends is taken whole (decisions.md, section 70).
+    # A stand-in that separates before the record's spring-back ends does not replace the run's own: the run
+    # is continued as without one (decisions.md, section 85; section 70 took the stand-in whole).
     short = stand_in.u < 0.5 * u_join
     early = dataclasses.replace(stand_in, u=stand_in.u[short], u_end=float(stand_in.u[short][-1]),
                                 a_unloading=np.append(stand_in.a_unloading[short][:-1], 0.0))
-    assert CAECurve.from_pulse(run, unloading_from=early).unloading_origin == "stand-in"
+    kept = CAECurve.from_pulse(run, unloading_from=early)
+    assert kept.unloading_origin == "continued" and kept.u_end == own.u_end
+    np.testing.assert_array_equal(kept.unloading(own.u), own.unloading(own.u))
 
 
 def test_surrogate_s_max_is_where_its_rollout_stops(world, fitted):

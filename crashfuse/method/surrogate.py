@@ -93,11 +93,13 @@ class CAECurve:
         """The curve of one CAE run, taken directly from its branches (``use_companion=True``).
 
         The unloading branch is, in order of preference: the run's own, if it reaches separation
-        inside the record; else, with ``unloading_from``, the run's own as far as its record goes joined
-        to ``unloading_from``'s beyond, scaled to meet it (:func:`_joined_unloading`), or - where the run
-        never stops or ``unloading_from`` separates first - ``unloading_from``'s whole; else, if the run
-        stopped, its own continued from the record's end with its last stiffness down to 0 (where that
-        slope falls); else none (``unloading_origin`` says which).
+        inside the record; else, if the run stopped, its own as far as its record goes, continued beyond
+        by ``unloading_from``'s scaled to meet it (:func:`_joined_unloading`) or - without one, or where
+        it separates first - with its last stiffness down to 0 (where that slope falls); else
+        ``unloading_from``'s whole (a run that never stops, or whose last slope does not fall); else none
+        (``unloading_origin`` says which). A stopped run's own spring-back is never replaced: the
+        surrogate's, taken whole, carried its bias against the run into the tests' bias
+        (docs/decisions.md, section 85).
 
         Parameters
         ----------
@@ -121,11 +123,12 @@ class CAECurve:
         s_max = br.s_max if br.stopped else _energy_stop(load.x, load.decel, pulse.v0, f"CAE run {pulse.run_id}",
                                                              pulse.where)
         unload = (*_unloading_to_separation(br), "run") if br.stopped and _separation(br) is not None else None
-        if unload is None and unloading_from is not None and unloading_from.u is not None:
-            joined = _joined_unloading(br.unloading.x, br.unloading.decel, unloading_from) if br.stopped else None
-            unload = joined or (unloading_from.u, unloading_from.a_unloading, "stand-in")
+        stand_in = unloading_from if unloading_from is not None and unloading_from.u is not None else None
         if unload is None and br.stopped:
-            unload = _continued_unloading(br.unloading.x, br.unloading.decel)
+            own = br.unloading.x, br.unloading.decel
+            unload = (stand_in is not None and _joined_unloading(*own, stand_in)) or _continued_unloading(*own)
+        if unload is None and stand_in is not None:
+            unload = stand_in.u, stand_in.a_unloading, "stand-in"
         u, a_u, origin = unload if unload is not None else (None, None, "none")
         return cls(load.x, load.decel, u, a_u, s_max, None if u is None else float(u[-1]), pulse.v0,
                    pulse.run_id, origin)
