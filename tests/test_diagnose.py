@@ -20,7 +20,7 @@ from crashfuse.diagnosis.diagnose import Candidate, _bounded, diagnose, markdown
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, judge, permutation_test, sign_test
 from crashfuse.gp.threads import cpu_kernels
 from crashfuse.signals.dynamics import State
-from crashfuse.method.laws import LINK_DAMPING_RATIO, _link_force, decel_fn, headline, parameters
+from crashfuse.method.laws import LINK_DAMPING_RATIO, _link_force, decel_fn, headline, parameters, simulate
 from crashfuse.errors import InputError
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import fit_model
@@ -248,7 +248,6 @@ def test_fit_recovers_parameters_of_its_own_law(case):
     rows = np.arange(len(case.test_ids))
     truth = {"damping.c": np.full(rows.size, 3000.0), "damping.n": np.full(rows.size, 2.0),
              "mass.extra": np.full(rows.size, 150.0), "mass.k_link": np.full(rows.size, 1e12)}
-    from crashfuse.method.laws import simulate
     made = simulate(case.plant, ("damping", "mass"), truth, ef.DT, case.n_steps).decel
     synthetic = dataclasses.replace(case, target=made, mask=np.ones_like(case.mask))
     fits = ef.fit_folds(synthetic, ("damping", "mass"), [list(rows)])
@@ -256,6 +255,25 @@ def test_fit_recovers_parameters_of_its_own_law(case):
     assert got["damping.c"] == pytest.approx(3000.0, rel=0.01)
     assert got["damping.n"] == pytest.approx(2.0, rel=0.01)
     assert got["mass.extra"] == pytest.approx(150.0, rel=0.01)
+
+
+def test_a_trial_step_whose_rollout_is_not_finite_is_rejected_not_raised(case, monkeypatch):
+    """A rollout that is not finite beyond c = 2000 N s/m, as a wider law family may give: the fit towards
+    c = 3000 must stop short of it, its cost finite, instead of raising out of every fold's fit."""
+    rows = np.arange(len(case.test_ids))
+    truth = {"damping.c": np.full(rows.size, 3000.0), "damping.n": np.full(rows.size, 1.0)}
+    made = simulate(case.plant, ("damping",), truth, ef.DT, case.n_steps).decel
+    synthetic = dataclasses.replace(case, target=made, mask=np.ones_like(case.mask))
+
+    def finite_below_2000(plant, effects, theta, dt, n_steps):
+        if np.any(theta["damping.c"] > 2000.0):
+            raise InputError("the CAE + effects rollout gave a non-finite deceleration at step 1", field="theta")
+        return simulate(plant, effects, theta, dt, n_steps)
+
+    monkeypatch.setattr(ef, "simulate", finite_below_2000)
+    fits = ef.fit_folds(synthetic, ("damping",), [list(rows), list(rows[1:])], start=np.array([[1000.0, 1.0]] * 2))
+    c = fits.theta[:, [p.name for p in fits.params].index("damping.c")]
+    assert np.all(np.isfinite(fits.cost)) and np.all((c > 1500.0) & (c <= 2000.0))
 
 
 def test_withheld_damping_is_found_and_recovered(damping_world):

@@ -257,7 +257,7 @@ def _levenberg_marquardt(case, effects, params, sets, z):
             steps[i, f] = -np.linalg.lstsq(a + lam[i] * np.diag(np.diag(a)) + 1e-12 * np.eye(f.sum()) * np.trace(a), g,
                                            rcond=None)[0]
         trial = np.clip(z + steps, lo, hi)
-        trial_res = _residuals(case, effects, params, sets, trial, np.flatnonzero(active))
+        trial_res = _trial_residuals(case, effects, params, sets, trial, np.flatnonzero(active))
         new_cost = np.array([r @ r if r is not None else np.inf for r in trial_res])
         better = active & (new_cost < cost)
         converged = active & better & (cost - new_cost < RTOL * cost)
@@ -310,6 +310,22 @@ def _residuals(case, effects, params, sets, z, which):
     for i in which:
         out[i] = diff[owner == i].ravel()
     return out
+
+
+def _trial_residuals(case, effects, params, sets, z, which):
+    """:func:`_residuals` at a trial step; None for a set whose rollout is not finite there, so that the
+    step is rejected (its damping raised) instead of ending every set's fit. A law family wider than the
+    catalogue's reached such a step on the second world (docs/decisions.md, section 83)."""
+    try:
+        return _residuals(case, effects, params, sets, z, which)
+    except InputError:  # one batched rollout for all sets: find the sets that left the finite range
+        out = [None] * len(sets)
+        for i in which:
+            try:
+                out[i] = _residuals(case, effects, params, sets, z, [i])[i]
+            except InputError:
+                pass
+        return out
 
 
 def _jacobian(case, effects, params, sets, z, which, res):
