@@ -9,6 +9,7 @@ import pytest
 from crashfuse.cli import main
 from crashfuse.errors import InputError
 from crashfuse.evaluation import loto
+from crashfuse.evaluation.iso_table import ISO_TABLE
 from crashfuse.io.campaign import read_campaign
 from crashfuse.method.config import MethodConfig
 from crashfuse.method.model import fit_model
@@ -148,6 +149,14 @@ def test_tiny_matrix_table_and_resume(tmp_path, one_fold, monkeypatch):
     again = mv.validate_method(tmp_path / "again", work=tmp_path / "out" / "work", **spread)
     pd.testing.assert_frame_equal(again.table, first.table)
     assert (tmp_path / "again" / "method_matrix.csv").read_bytes() == (tmp_path / "out" / "method_matrix.csv").read_bytes()
+
+    # An evaluation made by other code is made again, its old table gone until then (the campaign is reused).
+    this_code = mv.method_digest()
+    monkeypatch.setattr(mv, "method_digest", lambda: "other code")
+    with pytest.raises(AssertionError, match="resume must reuse"):
+        mv.validate_method(tmp_path / "stale", work=tmp_path / "out" / "work", **spread)
+    assert not list((tmp_path / "out" / "work" / "evaluations").rglob(ISO_TABLE))
+    monkeypatch.setattr(mv, "method_digest", lambda: this_code)
 
     # The hybrid is an evaluation of its own on the same campaign, its rows labelled with its effects.
     monkeypatch.setattr(mv, "evaluate", one_fold_evaluate)

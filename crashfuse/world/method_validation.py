@@ -7,13 +7,15 @@ against the CAE: mean ISO/TS 18571 overall per window, the test-windows it loses
 than :data:`LOSS_MARGINS`), its worst margin and its band coverage. The first world has the
 Table 1 matrix only; its share of the spread skips the wide matrix (the table's notes say so).
 Campaigns and evaluations are kept in the work folder under a key of everything that makes them,
-and reused when present (resume); after a change of the method, clear the work folder's
-``evaluations``.
+and reused when present (resume); an evaluation made by other code of the package (its
+:func:`method_digest`) is made again.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import itertools
 import time
 from pathlib import Path
@@ -56,6 +58,7 @@ LOSS_MARGINS = (0.01, 0.05)  # a test-window is lost when the model's ISO is bel
 # first on a control.
 TARGET_SHARE, TARGET_COVERAGE, TARGET_BEHIND = 0.97, (0.90, 0.99), 0.01
 COVERAGE_FILE = "coverage.csv"
+DIGEST_FILE = "method_digest.txt"  # the code an evaluation was made by
 
 DEFAULTS = dict(worlds=WORLDS, withheld=(SINGLE, PAIRS, PAPER, CONTROL, NOISE), strengths=STRENGTHS, seeds=(0, 1, 2),
                 matrices=MATRICES, n_cae=(150, 1000), inputs=("state",), ks=(1, 2, 3), n_samples=200)
@@ -243,26 +246,43 @@ def evaluation_key(inputs, ks, n_samples, random_state, auto=False, effects=(), 
     return f"{'-'.join(inputs)}-K{'-'.join(map(str, ks))}{auto}{effects}{windows}-n{n_samples}-seed{random_state}"
 
 
+@functools.cache
+def method_digest() -> str:
+    """sha256 of the package's Python source outside ``crashfuse/world`` (which makes campaigns, not their
+    evaluations): the code an evaluation's numbers come from, besides its campaign and settings."""
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for path in sorted(package.rglob("*.py")):
+        rel = path.relative_to(package)
+        if rel.parts[0] != "world":
+            digest.update(rel.as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
 def evaluate_campaign(folder: Path, out: Path, inputs, ks, n_samples: int, random_state: int, n_jobs: int,
                       progress=None, auto=False, effects=(),
                       windows=WINDOWS) -> tuple[pd.DataFrame, pd.DataFrame, bool]:
-    """The campaign's ISO table and coverage, from ``out`` if there, else evaluated and written there
-    (``progress`` receives evaluate's line per fold; ``effects``: the hybrid's, ``MethodConfig.effects``;
-    ``windows``: the ISO windows).
+    """The campaign's ISO table and coverage, from ``out`` if there and made by this code
+    (:func:`method_digest`), else evaluated and written there (``progress`` receives evaluate's line per
+    fold; ``effects``: the hybrid's, ``MethodConfig.effects``; ``windows``: the ISO windows).
 
-    ``coverage.csv`` is written before ``iso_table.csv``: an ISO table means a complete evaluation.
+    The digest and ``coverage.csv`` are written before ``iso_table.csv``: an ISO table means a complete
+    evaluation.
 
     Returns
     -------
     iso_table, coverage : DataFrame
     reused : bool
     """
-    iso_path, cov_path = out / ISO_TABLE, out / COVERAGE_FILE
-    if iso_path.is_file() and cov_path.is_file():
+    iso_path, cov_path, digest_path = out / ISO_TABLE, out / COVERAGE_FILE, out / DIGEST_FILE
+    made_by = digest_path.read_text().strip() if digest_path.is_file() else None
+    if iso_path.is_file() and cov_path.is_file() and made_by == method_digest():
         return pd.read_csv(iso_path), pd.read_csv(cov_path), True
+    iso_path.unlink(missing_ok=True)  # made by other code: not complete until made again
     result = evaluate(read_campaign(folder), ks=ks, inputs=inputs, n_samples=n_samples, random_state=random_state,
                       n_jobs=n_jobs, progress=progress, auto=auto, effects=effects, windows=windows)
     out.mkdir(parents=True, exist_ok=True)
+    write_text(digest_path, method_digest() + "\n")
     for frame, path in ((result.coverage, cov_path), (result.iso_table, iso_path)):
         with atomic_path(path) as tmp:
             frame.to_csv(tmp, index=False, float_format="%.6g")
