@@ -21,6 +21,7 @@ from crashfuse.signals.filters import filter_pulse
 from crashfuse.io.nhtsa import read_nhtsa
 from crashfuse.signals.iso18571 import iso_score
 from crashfuse.signals.pulse import Pulse
+from crashfuse.units import G0
 from crashfuse.method import surrogate as surrogate_module
 from crashfuse.method.surrogate import CAECurve, CAESurrogate
 from crashfuse.world.generate import build
@@ -132,6 +133,17 @@ def test_a_run_cut_before_separation_is_continued_or_stood_in_for(world, fitted)
     kept = CAECurve.from_pulse(run, unloading_from=early)
     assert kept.unloading_origin == "continued" and kept.u_end == own.u_end
     np.testing.assert_array_equal(kept.unloading(own.u), own.unloading(own.u))
+
+
+def test_a_spring_back_that_pushes_harder_as_its_record_ends_is_continued_with_its_mean_slope():
+    # The second world's engine on its mounts: a run's unloading falls to 1 g, then rises to 1.6 g by the record's
+    # end. Its last slope cannot say where it ends; its mean slope from maximum crush can (decisions.md, section 85).
+    u = np.linspace(0.0, 0.06, 61)
+    a = G0 * np.where(u < 0.01, 30.0 - 2900.0 * u, 1.0 + 10.0 * (u - 0.01))
+    cont_u, cont_a, origin = surrogate_module._continued_unloading(u, a)
+    assert origin == "continued" and cont_a[-1] == 0.0
+    assert cont_u[-1] == pytest.approx(u[-1] + a[-1] * (u[-1] - u[0]) / (a[0] - a[-1]))
+    assert surrogate_module._continued_unloading(u, G0 * (1.0 + u)) is None  # a branch that never falls: no end to read
 
 
 def test_surrogate_s_max_is_where_its_rollout_stops(world, fitted):

@@ -95,11 +95,10 @@ class CAECurve:
         The unloading branch is, in order of preference: the run's own, if it reaches separation
         inside the record; else, if the run stopped, its own as far as its record goes, continued beyond
         by ``unloading_from``'s scaled to meet it (:func:`_joined_unloading`) or - without one, or where
-        it separates first - with its last stiffness down to 0 (where that slope falls); else
-        ``unloading_from``'s whole (a run that never stops, or whose last slope does not fall); else none
-        (``unloading_origin`` says which). A stopped run's own spring-back is never replaced: the
-        surrogate's, taken whole, carried its bias against the run into the tests' bias
-        (docs/decisions.md, section 85).
+        it separates first - with its last stiffness down to 0 (:func:`_continued_unloading`); else
+        ``unloading_from``'s whole (a run that never stops); else none (``unloading_origin`` says which).
+        A stopped run's own spring-back is never replaced: the surrogate's, taken whole, carried its bias
+        against the run into the tests' bias (docs/decisions.md, section 85).
 
         Parameters
         ----------
@@ -473,9 +472,13 @@ def _end_slope(x: np.ndarray, a: np.ndarray) -> float:
 def _continued_unloading(u: np.ndarray, a: np.ndarray):
     """An unloading cut by the record's end, continued with its last slope to 0: (u, a, 'continued').
 
-    None if the slope does not fall (no honest way to say where the spring-back ends).
+    Where the last slope does not fall (a run pushing harder again as its record ends: the second world's
+    engine on its mounts), the branch's mean slope from maximum crush to the record's end. None if that
+    does not fall either (no honest way to say where the spring-back ends).
     """
     k = _end_slope(u, a)
+    if k >= 0 and u[-1] > u[0]:
+        k = (a[-1] - a[0]) / (u[-1] - u[0])
     if k >= 0 or a[-1] <= 0:
         return None
     return np.append(u, u[-1] + a[-1] / -k), np.append(a, 0.0), "continued"
