@@ -136,7 +136,7 @@ def test_a_run_cut_before_separation_is_continued_or_stood_in_for(world, fitted)
 
 
 def test_a_spring_back_that_pushes_harder_as_its_record_ends_is_continued_with_its_mean_slope():
-    # The second world's engine on its mounts: a run's unloading falls to 1 g, then rises to 1.6 g by the record's
+    # The second world's engine on its mounts: a run's unloading falls to 1 g, then rises to 1.5 g by the record's
     # end. Its last slope cannot say where it ends; its mean slope from maximum crush can (decisions.md, section 85).
     u = np.linspace(0.0, 0.06, 61)
     a = G0 * np.where(u < 0.01, 30.0 - 2900.0 * u, 1.0 + 10.0 * (u - 0.01))
