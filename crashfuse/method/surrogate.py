@@ -125,7 +125,8 @@ class CAECurve:
         stand_in = unloading_from if unloading_from is not None and unloading_from.u is not None else None
         if unload is None and br.stopped:
             own = br.unloading.x, br.unloading.decel
-            unload = (stand_in is not None and _joined_unloading(*own, stand_in)) or _continued_unloading(*own)
+            joined = _joined_unloading(*own, stand_in) if stand_in is not None else None
+            unload = joined or _continued_unloading(*own)
         if unload is None and stand_in is not None:
             unload = stand_in.u, stand_in.a_unloading, "stand-in"
         u, a_u, origin = unload if unload is not None else (None, None, "none")
