@@ -32,8 +32,8 @@ from joblib import Parallel, delayed
 
 from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect
 from crashfuse.gp.threads import cpu_kernels, one_blas_thread
-from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_folds, loto_sets, parameters_to_fit, predict,
-                                         test_case, warm_start)
+from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_beyond, fit_folds, loto_sets, parameters_to_fit,
+                                         predict, test_case)
 from crashfuse.method.laws import damping_force, decay_length, headline
 from crashfuse.errors import InputError
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, Evidence, judge
@@ -220,9 +220,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
         remaining = [e for e in effects if e not in base.chosen and e not in dropped]
         if not remaining:
             break
-        round_fits = Parallel(n_jobs=n_jobs)(delayed(fit_folds)(case, (*base.chosen, e), sets,
-                                                                start=warm_start(case, base.fits, (e,)))
-                                             for e in remaining)
+        round_fits = Parallel(n_jobs=n_jobs)(delayed(fit_beyond)(case, base.fits, (e,), sets) for e in remaining)
         singles = {}
         for e, fits in zip(remaining, round_fits):
             fits, pred, mse, ev = _judged_within_limits(case, sets, fits, (e,), base, rule)
@@ -311,8 +309,7 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
         f"{' or '.join(sorted(seen)) or 'a member that moves predictions'}")
     if not pairs:
         return [], [], base
-    pair_fits = Parallel(n_jobs=n_jobs)(delayed(fit_folds)(case, (*base.chosen, *pair), sets,
-                                                           start=warm_start(case, base.fits, pair)) for pair in pairs)
+    pair_fits = Parallel(n_jobs=n_jobs)(delayed(fit_beyond)(case, base.fits, pair, sets) for pair in pairs)
     best, tried = ([], base), []
     for pair, fits in zip(pairs, pair_fits):
         fits, pred, mse, ev = _judged_within_limits(case, sets, fits, pair, base, rule)

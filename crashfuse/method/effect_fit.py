@@ -221,6 +221,53 @@ def warm_start(case: TestCase, current: FoldFits, effects) -> np.ndarray | None:
     return np.hstack([current.theta, np.tile(new, (current.theta.shape[0], 1))])
 
 
+def fit_beyond(case: TestCase, base: FoldFits, new, train_sets) -> FoldFits:
+    """``base``'s effects and the ``new`` ones fitted together on ``base``'s training sets, from
+    ``base``'s values (:func:`warm_start`; without any, every listed start).
+
+    A set whose fit ends above ``base``'s own cost - more laws fitting the tests worse than fewer,
+    a basin the new laws' first start led the search into - is fitted again from ``base``'s values
+    with the new laws off (:attr:`crashfuse.method.laws.Param.off`), and the better of the two kept:
+    a law set is never judged on a fit worse than the one it nests (docs/decisions.md, section 86).
+
+    Parameters
+    ----------
+    case : TestCase
+    base : FoldFits
+        The fit of the smaller effect set, one row per training set.
+    new : sequence of str
+        Effects added.
+    train_sets : sequence of sequence of int
+        ``base``'s training sets.
+
+    Returns
+    -------
+    FoldFits
+    """
+    effects = (*base.effects, *new)
+    fits = fit_folds(case, effects, train_sets, start=warm_start(case, base, new))
+    worse = np.flatnonzero(fits.cost > base.cost)
+    off = _off_start(case, base, new)
+    if worse.size == 0 or off is None:
+        return fits
+    again = fit_folds(case, effects, [train_sets[i] for i in worse], start=off[worse])
+    take = again.cost < fits.cost[worse]
+    theta, cost = fits.theta.copy(), fits.cost.copy()
+    theta[worse[take]], cost[worse[take]] = again.theta[take], again.cost[take]
+    return dataclasses.replace(fits, theta=theta, cost=cost)
+
+
+def _off_start(case: TestCase, base: FoldFits, new) -> np.ndarray | None:
+    """``base``'s values per training set and each new parameter's ``off`` value (its first start
+    where its law is off by another parameter); None when a new law cannot be turned off."""
+    params = parameters_to_fit(case, new)
+    laws = {p.name.split(".")[0] for p in params if p.off is not None}
+    if laws != set(new):
+        return None
+    values = np.tile([p.start[0] if p.off is None else p.off for p in params], (base.theta.shape[0], 1))
+    return np.hstack([base.theta, values])
+
+
 def _starts(params, n_sets: int, extra, listed_too: bool = False) -> np.ndarray:
     """Starting points, shape (n_start, n_sets, n_params): ``extra`` (and, ``listed_too``, each
     parameter's listed starts in turn), else the listed starts."""

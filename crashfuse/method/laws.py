@@ -114,6 +114,11 @@ class Param:
         the car), so the law cannot explain the gap. False where ``upper`` only closes the search
         box on the weak side (the rate reference ``d``: a larger ``d`` hardens less) or is a limit
         inside the family (a rigid link or unloading start, a sharp mount step, an exponential).
+    off : float or None
+        A value at which the law (nearly) does not act, with its law's other parameters at theirs
+        (their first start where None): the nested law set a fit can always fall back to
+        (:func:`crashfuse.method.effect_fit.fit_beyond`). None on every parameter of a law without
+        such a value (the unloading replaces the CAE's own).
     """
 
     name: str
@@ -122,6 +127,7 @@ class Param:
     upper: float
     start: tuple
     upper_is_limit: bool = True
+    off: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -330,28 +336,29 @@ def parameters(effect: str, labels=("all",), mass_hint: float = 1500.0) -> tuple
     """
     check_effect(effect)
     if effect == "damping":
-        return (_param("damping.c", 10.0, 1e5, (1e3, 1e4)), _param("damping.n", 0.5, 3.0, (1.0, 1.0)))
-    if effect == "strain_rate":
-        return (_param("strain_rate.d", 1e-2, 1e8, (1e2, 1e4), upper_is_limit=False),
-                _param("strain_rate.q", 1.0, 12.0, (3.0, 6.0)))
+        return (_param("damping.c", 10.0, 1e5, (1e3, 1e4), off=30.0), _param("damping.n", 0.5, 3.0, (1.0, 1.0)))
+    if effect == "strain_rate":  # off: (v / d)^(1 / q) 1.3e-4 at 15 m/s
+        return (_param("strain_rate.d", 1e-2, 1e8, (1e2, 1e4), upper_is_limit=False, off=1e7),
+                _param("strain_rate.q", 1.0, 12.0, (3.0, 6.0), off=1.5))
     if effect == "unloading":
         return (_param("unloading.k", 1e5, 1e10, (1e7, 1e8), upper_is_limit=False),  # 1e10: rigid, l0 alone
                 _param("unloading.l0", 1e-4, 0.1, (0.003, 0.01)),
                 _param("unloading.n", 0.3, 30.0, (1.5, 1.0), upper_is_limit=False))  # 30: an exponential
     if effect == "mass":
-        return (_param("mass.extra", 1.0, 0.5 * mass_hint, (50.0, 200.0)),
+        return (_param("mass.extra", 1.0, 0.5 * mass_hint, (50.0, 200.0), off=2.0),
                 _param("mass.k_link", 1e4, 1e12, (1e12, 1e6), upper_is_limit=False))  # 1e12: rigid
     per_label = [p for lab in labels for p in (
         _param(f"powertrain.mass[{lab}]", 5.0, 0.45 * mass_hint, (150.0, 250.0)),
-        _param(f"powertrain.gap[{lab}]", 0.05, 1.2, (0.35, 0.5)))]
+        _param(f"powertrain.gap[{lab}]", 0.05, 1.2, (0.35, 0.5), off=1.1))]  # off: beyond any crush
     return (*per_label, _param("powertrain.f_mount", 1e3, 5e5, (5e4, 1e5)),
             _param("powertrain.k_mount", 1e5, 1e8, (5e6, 1e7), upper_is_limit=False))  # stiffer: a sharper step
 
 
-def _param(name: str, lower: float, upper: float, start: tuple, upper_is_limit: bool = True) -> Param:
+def _param(name: str, lower: float, upper: float, start: tuple, upper_is_limit: bool = True,
+           off: float | None = None) -> Param:
     """A :class:`Param` in the unit of the catalogue quantity :data:`QUANTITIES` declares for ``name``."""
     unit = quantity(name.split("[", 1)[0], QUANTITIES).unit
-    return Param(name, unit, lower, upper, start, upper_is_limit)
+    return Param(name, unit, lower, upper, start, upper_is_limit, off)
 
 
 # The compiled rollout reads the laws' parameters from one (n, len(COLUMNS)) matrix and their on/off
