@@ -247,8 +247,8 @@ def fit_beyond(case: TestCase, base: FoldFits, new, train_sets) -> FoldFits:
     effects = (*base.effects, *new)
     fits = fit_folds(case, effects, train_sets, start=warm_start(case, base, new))
     worse = np.flatnonzero(fits.cost > base.cost)
-    off = _off_start(case, base, new)
-    if worse.size == 0 or off is None:
+    off = _off_start(case, base, new) if worse.size else None
+    if off is None:
         return fits
     again = fit_folds(case, effects, [train_sets[i] for i in worse], start=off[worse])
     take = again.cost < fits.cost[worse]
