@@ -698,6 +698,59 @@ def test_a_later_effect_must_be_needed_beyond_the_chosen_ones_refitted(monkeypat
     assert needed_best(1, first, candidates, list(candidates)) == "unloading"
 
 
+def test_a_choice_the_tests_cannot_tell_from_a_runner_up_is_reported_with_it(monkeypatch):
+    """A round's pick judged against each other accepted candidate of its round by the evidence rule: one
+    it does not beat (damping, whose held-out predictions the pick's barely move) is reported - in
+    diagnosis.json and .md - and one it beats is not; a candidate refused or of an earlier round is not
+    judged. The verdict stays the pick's (docs/decisions.md, section 87). Scripted evidence."""
+    tests = np.full(N_FOLDS, TEST_RMS)
+    gain = judge(*_subset_effect(n_acting=6), tests, threshold=0.1)
+    nothing = judge(*_subset_effect(n_acting=6, gain=0.0), tests, threshold=0.1)
+    refused = dataclasses.replace(gain, accepted=False, reason="held-out MSE ratio 0.95 above 0.900")
+
+    def candidate(effect, evidence, rnd=2):
+        return Candidate(effect, rnd, effect, np.ones(N_FOLDS), np.ones(N_FOLDS), evidence, [])
+
+    candidates = {"strain_rate": candidate("strain_rate", gain), "damping": candidate("damping", gain),
+                  "mass": candidate("mass", gain), "unloading": candidate("unloading", refused),
+                  "powertrain": candidate("powertrain", gain, rnd=1)}
+    singles = {e: e for e in candidates}  # each one's _Base, here its name
+    judged = []
+    monkeypatch.setattr(diagnose_module, "_judged", lambda case, fits, new, base, rule: (
+        judged.append((new, base)) or (None, None, nothing if base == "damping" else gain)))
+    said = []
+    told = diagnose_module._not_told_apart(None, {}, said.append, 2, "strain_rate", singles, candidates)
+    assert sorted(judged) == [(("strain_rate",), "damping"), (("strain_rate",), "mass")]
+    assert [t["effect"] for t in told] == ["damping"] and told[0]["why"] == nothing.reason
+    assert told[0]["folds_better"] == nothing.wins and said == [f"diagnose: round 2 +strain_rate not told from "
+                                                                 f"+damping: {nothing.reason}"]
+    pick = {"effect": "strain_rate", "chosen": True, "evidence": {"not_told_from": told}}
+    lines = diagnose_module._not_told_lines([pick, {"effect": "damping", "chosen": False,
+                                                   "evidence": {"not_told_from": []}}])
+    assert lines == [f"**Not told apart:** strain_rate from damping (held-out MSE ratio {nothing.ratio:.3f} "
+                     f"against it; {nothing.reason}): the tests support either.", ""]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("strength, told", [("realistic", []), ("subtle", ["strain_rate"])])
+def test_the_second_worlds_subtle_damping_is_not_told_from_rate_hardening(tmp_path, strength, told):
+    """The second world's quadratic crush damping withheld (seed 0): at the realistic strength damping
+    beats rate hardening, both accepted in round 1, on the folds; at the subtle one their held-out
+    predictions part on one counted fold only, so the verdict `damping` says it cannot tell it from
+    strain_rate (docs/decisions.md, section 87)."""
+    from crashfuse.io.campaign import read_campaign
+    from crashfuse.world.multibody.generate import generate
+    from crashfuse.world.multibody.presets import resolve as resolve_second
+    generate(tmp_path / "c", resolve_second("withheld", withhold="damping", strength=strength), seed=0,
+             n_cae=N_PAIR_CAE)
+    said = []
+    diag = diagnose(read_campaign(tmp_path / "c"), effects=("damping", "strain_rate"), residual_model=False,
+                    regions=False, random_state=0, progress=said.append)
+    assert diag.verdict == ["damping"] and not any(line.startswith("diagnose: round 1 +strain_rate refused")
+                                                   for line in said)  # an alternative by itself
+    assert [o["effect"] for o in diag.candidates["damping"].not_told_from] == told
+
+
 @pytest.mark.slow
 def test_an_earlier_pick_that_a_later_one_makes_unneeded_leaves_the_verdict():
     """First world, damping + powertrain withheld (realistic, seed 0): round 1 reads the damping's

@@ -65,6 +65,7 @@ class Candidate:
     acts_on: list  # test ids of the affected folds
     chosen: bool = False
     partner: str | None = None  # the effect it was fitted and judged with when added as a pair
+    not_told_from: list = dataclasses.field(default_factory=list)  # :func:`_not_told_apart`, when chosen
 
     @property
     def ratio(self) -> float:
@@ -232,6 +233,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
                 say(f"diagnose: round {rnd} +{e} refused: {candidates[e].evidence.reason}")
         best = _needed_best(case, sets, rule, say, rnd, base, candidates, remaining)
         if best is not None:
+            candidates[best].not_told_from = _not_told_apart(case, rule, say, rnd, best, singles, candidates)
             added, base = [candidates[best]], singles[best]
         else:
             added, tried, base = _pair_round(case, sets, rule, n_jobs, say, rnd, base,
@@ -245,6 +247,8 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
         base = _drop_unneeded(case, sets, rule, say, rnd, base, candidates, dropped)
     for e in base.chosen:  # read as fitted together: the model of the shrink table, not its round's fit
         candidates[e].fits = base.fits
+    for e, c in candidates.items():  # a pick dropped later, or an alternative named as well, is no question
+        c.not_told_from = [o for o in c.not_told_from if o["effect"] not in base.chosen] if e in base.chosen else []
     say(f"diagnose: verdict {list(base.chosen) or 'none'}")
     return list(base.chosen), candidates, pairs, base.fits
 
@@ -263,6 +267,23 @@ def _needed_best(case, sets, rule, say, rnd, base: _Base, candidates: dict, name
         c.evidence = dataclasses.replace(c.evidence, accepted=False, reason=reason)
         say(f"diagnose: round {rnd} +{best} refused: {reason}")
     return best
+
+
+def _not_told_apart(case, rule, say, rnd, best, singles: dict, candidates: dict) -> list:
+    """The round's other accepted candidates that ``best`` is not better than by the evidence rule, judged
+    against each of them in turn: laws the tests cannot tell apart (subtle damping and rate hardening,
+    docs/decisions.md, sections 34 and 87). Reported with the verdict (but for those it names as well);
+    the choice stays ``best``'s."""
+    told = []
+    for e, c in candidates.items():
+        if e == best or c.round != rnd or not c.evidence.accepted:
+            continue
+        ev = _judged(case, candidates[best].fits, (best,), singles[e], rule)[2]
+        if not ev.accepted:
+            told.append({"effect": e, "heldout_mse_ratio": float(ev.ratio), "folds_better": int(ev.wins),
+                         "folds_worse": int(ev.losses), "why": ev.reason})
+            say(f"diagnose: round {rnd} +{best} not told from +{e}: {ev.reason}")
+    return told
 
 
 def _drop_unneeded(case, sets, rule, say, rnd, base: _Base, candidates: dict, dropped: set) -> _Base:
@@ -596,7 +617,7 @@ def _candidate_json(c: Candidate, case: TestCase) -> dict:
                      "held_upper": dict(c.fits.held),
                      "n_folds": int(c.heldout_mse.size), "heldout_rms_g": _rms_g(c.heldout_mse),
                      "reference_rms_g": _rms_g(c.reference_mse), "fitted_with": list(c.fits.effects),
-                     "added_with": c.partner},
+                     "added_with": c.partner, "not_told_from": c.not_told_from},
         "reading": reading(c.effect, own(all_fit), case),
     }
 
@@ -672,6 +693,7 @@ def markdown(js: dict) -> str:
     """A readable report of a diagnosis.json dict."""
     verdict = ", ".join(js["verdict"]) or "none: no catalogue effect explains the gap beyond noise"
     lines = ["# Sim-to-real gap diagnosis", "", f"**Verdict:** {verdict}", ""]
+    lines += _not_told_lines(js["effects"])
     if not js["holdout"]:
         lines += ["**One test, no hold-out:** the evidence below is in-sample fit, not prediction.", ""]
     lines += ["## Which effect", "",
@@ -714,6 +736,14 @@ def markdown(js: dict) -> str:
         lines += ["", *_regions_markdown(js["regions"])]
     lines += ["", f"Computed with {js['settings']['kernels']} (docs/decisions.md, sections 56 and 60)."]
     return "\n".join(lines) + "\n"
+
+
+def _not_told_lines(effects: list) -> list[str]:
+    """A line per chosen effect and round candidate the tests do not tell it from (:func:`_not_told_apart`)."""
+    return [line for e in effects if e["chosen"] for other in e["evidence"]["not_told_from"]
+            for line in (f"**Not told apart:** {e['effect']} from {other['effect']} (held-out MSE ratio "
+                         f"{other['heldout_mse_ratio']:.3f} against it; {other['why']}): the tests support either.",
+                         "")]
 
 
 def _regions_markdown(regions: dict) -> list[str]:
