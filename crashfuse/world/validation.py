@@ -182,7 +182,7 @@ def validation_markdown(table: pd.DataFrame, kernels: str) -> str:
               "error | ok | held-out MSE ratio | ISO 0-60 CAE -> +effects |", "|" + "---|" * 13]
     for r in table.itertuples():
         lines.append(f"| {r.world} | {r.withheld} | {r.strength} | {r.seed} | {r.verdict} | {r.not_told_apart} | "
-                     f"{r.parameter} | "
-                     f"{r.true:.4g} | {r.fitted:.4g} ({r.fitted_se:.2g}) | {r.rel_error:.2f} | {r.within_tolerance} | "
-                     f"{r.heldout_mse_ratio:.3f} | {r.iso_0_60_cae:.3f} -> {r.iso_0_60_effects:.3f} |")
+                     f"{r.parameter} | {r.true:.4g} | {r.fitted:.4g} ({r.fitted_se:.2g}) | {r.rel_error:.2f} | "
+                     f"{r.within_tolerance} | {r.heldout_mse_ratio:.3f} | "
+                     f"{r.iso_0_60_cae:.3f} -> {r.iso_0_60_effects:.3f} |")
     return "\n".join(lines) + "\n"
