@@ -714,13 +714,14 @@ def test_a_choice_the_tests_cannot_tell_from_a_runner_up_is_reported_with_it(mon
     candidates = {"strain_rate": candidate("strain_rate", gain), "damping": candidate("damping", gain),
                   "mass": candidate("mass", gain), "unloading": candidate("unloading", refused),
                   "powertrain": candidate("powertrain", gain, rnd=1)}
-    singles = {e: e for e in candidates}  # each one's _Base, here its name
+    singles = {e: diagnose_module._Base((e,), e, e, e) for e in candidates}  # fits, mse, pred: its name
     judged = []
-    monkeypatch.setattr(diagnose_module, "_judged", lambda case, fits, new, base, rule: (
-        judged.append((new, base)) or (None, None, nothing if base == "damping" else gain)))
+    monkeypatch.setattr(diagnose_module, "_evidence", lambda case, fits, new, pred, mse, base, rule: (
+        judged.append((fits, new, pred, mse, base.chosen)) or (nothing if base.chosen == ("damping",) else gain)))
     said = []
     told = diagnose_module._not_told_apart(None, {}, said.append, 2, "strain_rate", singles, candidates)
-    assert sorted(judged) == [(("strain_rate",), "damping"), (("strain_rate",), "mass")]
+    pick = ("strain_rate", ("strain_rate",), "strain_rate", "strain_rate")  # its fits, effect, predictions, errors
+    assert sorted(judged) == [(*pick, ("damping",)), (*pick, ("mass",))]
     assert [t["effect"] for t in told] == ["damping"] and told[0]["why"] == nothing.reason
     assert told[0]["folds_better"] == nothing.wins and said == [f"diagnose: round 2 +strain_rate not told from "
                                                                  f"+damping: {nothing.reason}"]

@@ -274,11 +274,11 @@ def _not_told_apart(case, rule, say, rnd, best, singles: dict, candidates: dict)
     against each of them in turn: laws the tests cannot tell apart (subtle damping and rate hardening,
     docs/decisions.md, sections 34 and 87). Reported with the verdict (but for those it names as well);
     the choice stays ``best``'s."""
-    told = []
+    told, pick = [], singles[best]
     for e, c in candidates.items():
         if e == best or c.round != rnd or not c.evidence.accepted:
             continue
-        ev = _judged(case, candidates[best].fits, (best,), singles[e], rule)[2]
+        ev = _evidence(case, pick.fits, (best,), pick.pred, pick.mse, singles[e], rule)
         if not ev.accepted:
             told.append({"effect": e, "heldout_mse_ratio": float(ev.ratio), "folds_better": int(ev.wins),
                          "folds_worse": int(ev.losses), "why": ev.reason})
@@ -400,9 +400,13 @@ def _judged(case: TestCase, fits: FoldFits, new, base: _Base, rule: dict):
     """Held-out prediction, mean squared error and :class:`Evidence` of ``fits`` (``base``'s effects
     plus ``new``) against ``base``'s held-out errors and predictions."""
     pred, mse = _heldout(case, fits)
+    return pred, mse, _evidence(case, fits, new, pred, mse, base, rule)
+
+
+def _evidence(case: TestCase, fits: FoldFits, new, pred, mse, base: _Base, rule: dict):
+    """:class:`Evidence` of ``fits``' held-out predictions ``pred`` and errors ``mse`` against ``base``'s."""
     groups = next((g for e in new if (g := _groups(case, fits, e)) is not None), None)
-    return pred, mse, judge(base.mse, mse, _rms(case, pred - base.pred), _rms(case, case.target), groups=groups,
-                            **rule)
+    return judge(base.mse, mse, _rms(case, pred - base.pred), _rms(case, case.target), groups=groups, **rule)
 
 
 def _acts_on(case: TestCase, ev: Evidence) -> list:
