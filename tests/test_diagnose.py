@@ -700,9 +700,8 @@ def test_a_later_effect_must_be_needed_beyond_the_chosen_ones_refitted(monkeypat
 
 def test_a_choice_the_tests_cannot_tell_from_a_runner_up_is_reported_with_it(monkeypatch):
     """A round's pick judged against each other accepted candidate of its round by the evidence rule: one
-    it does not beat (damping, whose held-out predictions the pick's barely move) is reported - in
-    diagnosis.json and .md - and one it beats is not; a candidate refused or of an earlier round is not
-    judged. The verdict stays the pick's (docs/decisions.md, section 87). Scripted evidence."""
+    it does not beat (damping, whose held-out predictions the pick's barely move) is reported, with its
+    diagnosis.md line, and one it beats is not; a candidate refused or of an earlier round is not judged. The verdict stays the pick's (docs/decisions.md, section 87). Scripted evidence."""
     tests = np.full(N_FOLDS, TEST_RMS)
     gain = judge(*_subset_effect(n_acting=6), tests, threshold=0.1)
     nothing = judge(*_subset_effect(n_acting=6, gain=0.0), tests, threshold=0.1)
