@@ -32,8 +32,8 @@ from joblib import Parallel, delayed
 
 from crashfuse.catalogue import EFFECTS, F_REF, V_REF, check_effect
 from crashfuse.gp.threads import cpu_kernels, one_blas_thread
-from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, fit_beyond, fit_folds, loto_sets, parameters_to_fit,
-                                         predict, test_case)
+from crashfuse.method.effect_fit import (DT, FoldFits, TestCase, better_of, fit_beyond, fit_folds, loto_sets,
+                                         parameters_to_fit, predict, test_case)
 from crashfuse.method.laws import damping_force, decay_length, headline
 from crashfuse.errors import InputError
 from crashfuse.diagnosis.evidence import ALPHA, MIN_MATERIAL, MOVE, Evidence, judge
@@ -359,11 +359,9 @@ def _alone(case: TestCase, sets, pair: FoldFits, effects, single: FoldFits | Non
     a single fit stuck in a worse optimum must not make the dropped member look needed."""
     names = {p.name for p in parameters_to_fit(case, effects)}
     keep = [i for i, p in enumerate(pair.params) if p.name in names]
-    fits = refit = fit_folds(case, effects, sets, start=pair.theta[:, keep])
+    fits = fit_folds(case, effects, sets, start=pair.theta[:, keep])
     if single is not None:
-        take = refit.cost < single.cost
-        fits = dataclasses.replace(single, theta=np.where(take[:, None], refit.theta, single.theta),
-                                   cost=np.minimum(refit.cost, single.cost))
+        fits = better_of(single, fits)
     pred, mse = _heldout(case, fits)
     return _Base(tuple(effects), fits, mse, pred)
 
