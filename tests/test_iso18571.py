@@ -1,8 +1,10 @@
 """ISO/TS 18571 rating: agreement with the TU Graz oracle, closed-form cases, real data, errors."""
 
+import functools
 import json
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 
@@ -93,11 +95,23 @@ CASES = {
 def _oracle(ref_w, cmp_w):
     """The oracle's unrounded scores; it takes (n, 2) arrays of time and value at 10 kHz."""
     rating = pytest.importorskip("objective_rating_metrics.rating")
+    _cache_dtwalign()
     t = np.arange(ref_w.size) * DT
     with np.errstate(all="ignore"):
         o = rating.ISO18571(np.column_stack([t, ref_w]), np.column_stack([t, cmp_w]))
         return {"overall": o.overall_rating(-1), "corridor": o.corridor_rating(-1), "phase": o.phase_rating(-1),
                 "magnitude": o.magnitude_rating(-1), "slope": o.slope_rating(-1)}
+
+
+@functools.cache
+def _cache_dtwalign():
+    """The oracle's warping (dtwalign) compiles its numba loops without a cache: ~15 s in every test process.
+    Cached beside dtwalign's source, they compile once per environment."""
+    from dtwalign import backtrack, cost, window
+    for module in (backtrack, cost, window):
+        for loop in vars(module).values():
+            if isinstance(loop, numba.core.registry.CPUDispatcher):
+                loop.enable_caching()
 
 
 def _window(lo_ms, hi_ms):
