@@ -699,36 +699,38 @@ def test_a_later_effect_must_be_needed_beyond_the_chosen_ones_refitted(monkeypat
 
 
 def test_a_choice_the_tests_cannot_tell_from_a_runner_up_is_reported_with_it(monkeypatch):
-    """A round's pick judged against each other accepted candidate of its round by the evidence rule: one
-    it does not beat (damping, whose held-out predictions the pick's barely move) is reported, with its
-    diagnosis.md line, and one it beats is not; a candidate refused or of an earlier round is not judged. The verdict stays the pick's (docs/decisions.md, section 87). Scripted evidence."""
+    """A round's pick judged against each alternative of its round by the evidence rule: one it does not
+    beat (damping, whose held-out predictions the pick's barely move) is reported, with its diagnosis.md
+    line, and one it beats is not; a pair picked in a pair round likewise, named with its partner. The
+    verdict stays the pick's (docs/decisions.md, sections 87 and 89). Scripted evidence."""
     tests = np.full(N_FOLDS, TEST_RMS)
     gain = judge(*_subset_effect(n_acting=6), tests, threshold=0.1)
     nothing = judge(*_subset_effect(n_acting=6, gain=0.0), tests, threshold=0.1)
-    refused = dataclasses.replace(gain, accepted=False, reason="held-out MSE ratio 0.95 above 0.900")
-
-    def candidate(effect, evidence, rnd=2):
-        return Candidate(effect, rnd, effect, np.ones(N_FOLDS), np.ones(N_FOLDS), evidence, [])
-
-    candidates = {"strain_rate": candidate("strain_rate", gain), "damping": candidate("damping", gain),
-                  "mass": candidate("mass", gain), "unloading": candidate("unloading", refused),
-                  "powertrain": candidate("powertrain", gain, rnd=1)}
-    singles = {e: diagnose_module._Base((e,), e, e, e) for e in candidates}  # fits, mse, pred: its name
+    fit = {name: diagnose_module._Base((name,), name, name, name)  # fits, mse, pred: its name
+           for name in ("strain_rate", "damping", "mass", "damping+unloading", "strain_rate+unloading")}
     judged = []
     monkeypatch.setattr(diagnose_module, "_evidence", lambda case, fits, new, pred, mse, base, rule: (
-        judged.append((fits, new, pred, mse, base.chosen)) or (nothing if base.chosen == ("damping",) else gain)))
+        judged.append((fits, new, pred, mse, base.chosen)) or (nothing if "damping" in base.chosen[0] else gain)))
     said = []
-    told = diagnose_module._not_told_apart(None, {}, said.append, 2, "strain_rate", singles, candidates)
+    told = diagnose_module._not_told_apart(None, {}, said.append, 2, ("strain_rate",), fit["strain_rate"],
+                                           {"damping": fit["damping"], "mass": fit["mass"]})
     pick = ("strain_rate", ("strain_rate",), "strain_rate", "strain_rate")  # its fits, effect, predictions, errors
     assert sorted(judged) == [(*pick, ("damping",)), (*pick, ("mass",))]
     assert [t["effect"] for t in told] == ["damping"] and told[0]["why"] == nothing.reason
     assert told[0]["folds_better"] == nothing.wins and said == [f"diagnose: round 2 +strain_rate not told from "
                                                                  f"+damping: {nothing.reason}"]
-    pick = {"effect": "strain_rate", "chosen": True, "evidence": {"not_told_from": told}}
-    lines = diagnose_module._not_told_lines([pick, {"effect": "damping", "chosen": False,
-                                                   "evidence": {"not_told_from": []}}])
-    assert lines == [f"**Not told apart:** strain_rate from damping (held-out MSE ratio {nothing.ratio:.3f} "
-                     f"against it; {nothing.reason}): the tests support either.", ""]
+    alternative = {"damping+unloading": fit["damping+unloading"]}
+    pair = diagnose_module._not_told_apart(None, {}, said.append, 3, ("strain_rate", "unloading"),
+                                           fit["strain_rate+unloading"], alternative)
+    assert [t["effect"] for t in pair] == ["damping+unloading"] and said[-1].startswith(
+        "diagnose: round 3 +strain_rate+unloading not told from +damping+unloading")
+    effects = [{"effect": e, "chosen": chosen, "evidence": {"not_told_from": others, "added_with": partner}}
+               for e, chosen, others, partner in (("strain_rate", True, told, None), ("damping", False, [], None),
+                                                  ("strain_rate", True, pair, "unloading"))]
+    lines = diagnose_module._not_told_lines(effects)
+    assert lines[:2] == [f"**Not told apart:** strain_rate from damping (held-out MSE ratio {nothing.ratio:.3f} "
+                         f"against it; {nothing.reason}): the tests support either.", ""]
+    assert lines[2].startswith("**Not told apart:** strain_rate+unloading from damping+unloading (") and len(lines) == 4
 
 
 @pytest.mark.slow

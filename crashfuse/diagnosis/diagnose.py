@@ -233,7 +233,8 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
                 say(f"diagnose: round {rnd} +{e} refused: {candidates[e].evidence.reason}")
         best = _needed_best(case, sets, rule, say, rnd, base, candidates, remaining)
         if best is not None:
-            candidates[best].not_told_from = _not_told_apart(case, rule, say, rnd, best, singles, candidates)
+            others = {e: singles[e] for e in remaining if e != best and candidates[e].evidence.accepted}
+            candidates[best].not_told_from = _not_told_apart(case, rule, say, rnd, (best,), singles[best], others)
             added, base = [candidates[best]], singles[best]
         else:
             added, tried, base = _pair_round(case, sets, rule, n_jobs, say, rnd, base,
@@ -248,7 +249,8 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
     for e in base.chosen:  # read as fitted together: the model of the shrink table, not its round's fit
         candidates[e].fits = base.fits
     for e, c in candidates.items():  # a pick dropped later, or an alternative named as well, is no question
-        c.not_told_from = [o for o in c.not_told_from if o["effect"] not in base.chosen] if e in base.chosen else []
+        c.not_told_from = [o for o in c.not_told_from
+                           if not set(o["effect"].split("+")) <= set(base.chosen)] if e in base.chosen else []
     say(f"diagnose: verdict {list(base.chosen) or 'none'}")
     return list(base.chosen), candidates, pairs, base.fits
 
@@ -269,20 +271,18 @@ def _needed_best(case, sets, rule, say, rnd, base: _Base, candidates: dict, name
     return best
 
 
-def _not_told_apart(case, rule, say, rnd, best, singles: dict, candidates: dict) -> list:
-    """The round's other accepted candidates that ``best`` is not better than by the evidence rule, judged
-    against each of them in turn: laws the tests cannot tell apart (subtle damping and rate hardening,
-    docs/decisions.md, sections 34 and 87). Reported with the verdict (but for those it names as well);
-    the choice stays ``best``'s."""
-    told, pick = [], singles[best]
-    for e, c in candidates.items():
-        if e == best or c.round != rnd or not c.evidence.accepted:
-            continue
-        ev = _evidence(case, pick.fits, (best,), pick.pred, pick.mse, singles[e], rule)
+def _not_told_apart(case, rule, say, rnd, new: tuple, pick: _Base, alternatives: dict) -> list:
+    """The ``alternatives`` ({name: fit}, the round's other accepted singles or supported pairs) that ``pick``,
+    the round's choice adding ``new``, is not better than by the evidence rule, judged against each in turn:
+    laws the tests cannot tell apart (subtle damping and rate hardening, docs/decisions.md, sections 34 and
+    87). Reported with the verdict (but for those it names as well); the choice stays ``pick``."""
+    told = []
+    for name, other in alternatives.items():
+        ev = _evidence(case, pick.fits, new, pick.pred, pick.mse, other, rule)
         if not ev.accepted:
-            told.append({"effect": e, "heldout_mse_ratio": float(ev.ratio), "folds_better": int(ev.wins),
+            told.append({"effect": name, "heldout_mse_ratio": float(ev.ratio), "folds_better": int(ev.wins),
                          "folds_worse": int(ev.losses), "why": ev.reason})
-            say(f"diagnose: round {rnd} +{best} not told from +{e}: {ev.reason}")
+            say(f"diagnose: round {rnd} +{'+'.join(new)} not told from +{name}: {ev.reason}")
     return told
 
 
@@ -331,7 +331,7 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
     if not pairs:
         return [], [], base
     pair_fits = Parallel(n_jobs=n_jobs)(delayed(fit_beyond)(case, base.fits, pair, sets) for pair in pairs)
-    best, tried = ([], base), []
+    supported, tried = {}, []
     for pair, fits in zip(pairs, pair_fits):
         fits, pred, mse, ev = _judged_within_limits(case, sets, fits, pair, base, rule)
         members = [Candidate(e, rnd, fits, mse, base.mse, ev, _acts_on(case, ev), partner=other)
@@ -346,11 +346,16 @@ def _pair_round(case, sets, rule, n_jobs, say, rnd, base: _Base, singles: dict):
         say(f"  round {rnd} +{'+'.join(pair)}: {_evidence_line(case, members[0])}; {reason or 'supported'}")
         tried.append({"effects": list(pair), "round": rnd, "heldout_mse_ratio": ev.ratio, "accepted": not reason,
                       "refused_because": reason, "chosen": False})
-        if not reason and (not best[0] or ev.ratio < best[0][0].ratio):
-            best = members, _Base((*base.chosen, *pair), fits, mse, pred)
-    if best[0]:
-        tried[pairs.index((best[0][0].effect, best[0][1].effect))]["chosen"] = True
-    return best[0], tried, best[1]
+        if not reason:
+            supported[pair] = members, _Base((*base.chosen, *pair), fits, mse, pred)
+    if not supported:
+        return [], tried, base
+    pick = min(supported, key=lambda pair: supported[pair][0][0].ratio)
+    members, new_base = supported.pop(pick)
+    tried[pairs.index(pick)]["chosen"] = True
+    others = {"+".join(pair): fit for pair, (_, fit) in supported.items()}
+    members[0].not_told_from = _not_told_apart(case, rule, say, rnd, pick, new_base, others)
+    return members, tried, new_base
 
 
 def _alone(case: TestCase, sets, pair: FoldFits, effects, single: FoldFits | None = None) -> _Base:
@@ -740,10 +745,17 @@ def markdown(js: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def not_told_apart(effects: list) -> list[tuple[str, dict]]:
+    """(pick, alternative) for each alternative the tests do not tell a chosen effect from
+    (:func:`_not_told_apart`), from diagnosis.json's ``effects``; a pair's pick named with its partner."""
+    return [("+".join(filter(None, (e["effect"], e["evidence"]["added_with"]))), other)
+            for e in effects if e["chosen"] for other in e["evidence"]["not_told_from"]]
+
+
 def _not_told_lines(effects: list) -> list[str]:
-    """A line per chosen effect and round candidate the tests do not tell it from (:func:`_not_told_apart`)."""
-    return [line for e in effects if e["chosen"] for other in e["evidence"]["not_told_from"]
-            for line in (f"**Not told apart:** {e['effect']} from {other['effect']} (held-out MSE ratio "
+    """A line per pick and alternative the tests do not tell it from."""
+    return [line for pick, other in not_told_apart(effects)
+            for line in (f"**Not told apart:** {pick} from {other['effect']} (held-out MSE ratio "
                          f"{other['heldout_mse_ratio']:.3f} against it; {other['why']}): the tests support either.",
                          "")]
 

@@ -22,7 +22,7 @@ import pandas as pd
 from joblib import Parallel, delayed
 
 from crashfuse.catalogue import EFFECTS
-from crashfuse.diagnosis.diagnose import diagnose
+from crashfuse.diagnosis.diagnose import diagnose, not_told_apart
 from crashfuse.errors import InputError
 from crashfuse.gp.threads import cpu_kernels
 from crashfuse.io.atomic import atomic_path, write_text
@@ -87,8 +87,7 @@ def validate_one(withheld: str, strength: str, seed: int, folder: Path, candidat
     base["first_correct"] = base["first"] in expected if expected else base["first"] == "none"
     base["all_named"] = set(expected) <= set(diag.verdict)
     base["spurious"] = " ".join(e for e in diag.verdict if e not in expected) or ""
-    base["not_told_apart"] = " ".join(f"{e['effect']}~{o['effect']}" for e in js["effects"] if e["chosen"]
-                                      for o in e["evidence"]["not_told_from"])
+    base["not_told_apart"] = " ".join(f"{pick}~{other['effect']}" for pick, other in not_told_apart(js["effects"]))
     # Shrinking is judged on ISO 0-60 ms, which the selection does not use (it adds an effect only
     # when the held-out squared error drops, so that ratio cannot fail). Unloading acts after
     # 60 ms: ISO 0-60 cannot show it - its row says so rather than pass.
