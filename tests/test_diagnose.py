@@ -705,19 +705,25 @@ def test_a_later_effect_must_be_needed_beyond_the_chosen_ones_refitted(monkeypat
 def test_a_choice_the_tests_cannot_tell_from_a_runner_up_is_reported_with_it(monkeypatch):
     """A round's pick judged against each alternative of its round by the evidence rule: one it does not
     beat (damping, whose held-out predictions the pick's barely move) is reported, with its diagnosis.md
-    line, and one it beats is not; a pair picked in a pair round likewise, named with its partner. The
-    verdict stays the pick's (docs/decisions.md, sections 87 and 89). Scripted evidence."""
+    line, and one it beats is not; a candidate whose own evidence was refused is no alternative; a pair
+    picked in a pair round likewise, named with its partner. The verdict stays the pick's
+    (docs/decisions.md, sections 87 and 89). Scripted evidence."""
     tests = np.full(N_FOLDS, TEST_RMS)
     gain = judge(*_subset_effect(n_acting=6), tests, threshold=0.1)
     nothing = judge(*_subset_effect(n_acting=6, gain=0.0), tests, threshold=0.1)
     fit = {name: diagnose_module._Base((name,), name, name, name)  # fits, mse, pred: its name
-           for name in ("strain_rate", "damping", "mass", "damping+unloading", "strain_rate+unloading")}
+           for name in ("strain_rate", "damping", "mass", "unloading", "damping+unloading", "strain_rate+unloading")}
+    refused = dataclasses.replace(gain, accepted=False, reason="held-out MSE ratio 0.95 above 0.900")
+    candidates = {e: Candidate(e, 2, e, np.ones(N_FOLDS), np.ones(N_FOLDS), gain if e != "unloading" else refused, [])
+                  for e in ("strain_rate", "damping", "mass", "unloading")}
+    singles = {e: fit[e] for e in candidates}
+    others = diagnose_module._accepted_others("strain_rate", singles, candidates)
+    assert others == {e: fit[e] for e in ("damping", "mass")}
     judged = []
     monkeypatch.setattr(diagnose_module, "_evidence", lambda case, fits, new, pred, mse, base, rule: (
         judged.append((fits, new, pred, mse, base.chosen)) or (nothing if "damping" in base.chosen[0] else gain)))
     said = []
-    told = diagnose_module._not_told_apart(None, {}, said.append, 2, ("strain_rate",), fit["strain_rate"],
-                                           {"damping": fit["damping"], "mass": fit["mass"]})
+    told = diagnose_module._not_told_apart(None, {}, said.append, 2, ("strain_rate",), fit["strain_rate"], others)
     pick = ("strain_rate", ("strain_rate",), "strain_rate", "strain_rate")  # its fits, effect, predictions, errors
     assert sorted(judged) == [(*pick, ("damping",)), (*pick, ("mass",))]
     assert [t["effect"] for t in told] == ["damping"] and told[0]["why"] == nothing.reason

@@ -233,7 +233,7 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
                 say(f"diagnose: round {rnd} +{e} refused: {candidates[e].evidence.reason}")
         best = _needed_best(case, sets, rule, say, rnd, base, candidates, remaining)
         if best is not None:
-            others = {e: singles[e] for e in remaining if e != best and candidates[e].evidence.accepted}
+            others = _accepted_others(best, singles, candidates)
             candidates[best].not_told_from = _not_told_apart(case, rule, say, rnd, (best,), singles[best], others)
             added, base = [candidates[best]], singles[best]
         else:
@@ -248,9 +248,10 @@ def _select(case: TestCase, sets, cae: FoldFits, effects, rule: dict, n_jobs: in
         base = _drop_unneeded(case, sets, rule, say, rnd, base, candidates, dropped)
     for e in base.chosen:  # read as fitted together: the model of the shrink table, not its round's fit
         candidates[e].fits = base.fits
-    for e, c in candidates.items():  # a pick dropped later, or an alternative named as well, is no question
-        c.not_told_from = [o for o in c.not_told_from
-                           if not set(o["effect"].split("+")) <= set(base.chosen)] if e in base.chosen else []
+    verdict = set(base.chosen)
+    for e, c in candidates.items():  # a pick (or its partner) dropped later, or an alternative named too: no question
+        kept = {e, c.partner or e} <= verdict
+        c.not_told_from = [o for o in c.not_told_from if kept and not set(o["effect"].split("+")) <= verdict]
     say(f"diagnose: verdict {list(base.chosen) or 'none'}")
     return list(base.chosen), candidates, pairs, base.fits
 
@@ -269,6 +270,12 @@ def _needed_best(case, sets, rule, say, rnd, base: _Base, candidates: dict, name
         c.evidence = dataclasses.replace(c.evidence, accepted=False, reason=reason)
         say(f"diagnose: round {rnd} +{best} refused: {reason}")
     return best
+
+
+def _accepted_others(best: str, singles: dict, candidates: dict) -> dict:
+    """The round's ``singles`` ({effect: fit}) but ``best`` whose own evidence was accepted: the alternatives
+    its single pick is judged against (:func:`_not_told_apart`)."""
+    return {e: fit for e, fit in singles.items() if e != best and candidates[e].evidence.accepted}
 
 
 def _not_told_apart(case, rule, say, rnd, new: tuple, pick: _Base, alternatives: dict) -> list:
