@@ -510,7 +510,6 @@ def _shrink(campaign, case, preds, fits, config, fold_models, n_samples, surroga
         for i, t in enumerate(case.test_ids):
             rows += _iso_rows(campaign.pulses[t], case.time, decel[i], t, model)
     if config is not None:
-        from crashfuse.evaluation.loto import evaluate
         label = f"K{config.k}"
         quick = dict(ks=(config.k,), inputs=(config.inputs,), n_samples=n_samples, random_state=config.random_state,
                      surrogate=surrogate, progress=None,
@@ -520,14 +519,15 @@ def _shrink(campaign, case, preds, fits, config, fold_models, n_samples, surroga
             say("diagnose: GMM-GPR alone (leave-one-test-out), from the given fold models")
             rows += [row for t in case.test_ids for row in _model_fold(campaign, fold_models[t], t, n_samples,
                                                                       surrogate, label)]
-        else:
+            alone = []
+        else:  # its folds in the pool of the residual's: no process idles between the two sets of folds
             say(f"diagnose: GMM-GPR alone (leave-one-test-out), {n_jobs} jobs")
-            rows += _relabel(evaluate(campaign, n_jobs=n_jobs, **quick).iso_table, label, "GMM-GPR")
+            alone = [delayed(_alone_fold)(campaign, t, quick) for t in case.test_ids]
         say(f"diagnose: CAE + effects + GMM-GPR residual (leave-one-test-out), {n_jobs} jobs")
-        folds = Parallel(n_jobs=n_jobs)(delayed(_effects_fold)(campaign, case, fits, i, quick)
-                                        for i in range(len(case.test_ids)))
-        for iso in folds:
-            rows += _relabel(iso, label, "CAE+effects+GMM-GPR")
+        folds = Parallel(n_jobs=n_jobs)(alone + [delayed(_effects_fold)(campaign, case, fits, i, quick)
+                                                 for i in range(len(case.test_ids))])
+        for j, iso in enumerate(folds):
+            rows += _relabel(iso, label, "GMM-GPR" if j < len(alone) else "CAE+effects+GMM-GPR")
     return pd.DataFrame(rows, columns=["test_id", "model", "window_ms", *SCORES])
 
 
@@ -558,6 +558,13 @@ def _model_fold(campaign, model, test_id, n_samples, surrogate, label) -> list[d
 
     iso = scored_fold(model, campaign, surrogate, test_id, n_samples)["iso"]
     return _relabel(pd.DataFrame(iso), label, "GMM-GPR")
+
+
+def _alone_fold(campaign, test_id, quick) -> pd.DataFrame:
+    """ISO table of the GMM-GPR fold holding out ``test_id`` (the campaign's own CAE runs)."""
+    from crashfuse.evaluation.loto import evaluate
+
+    return evaluate(campaign, holdout=[test_id], n_jobs=1, **quick).iso_table
 
 
 def _effects_fold(campaign, case, fits, fold, quick) -> pd.DataFrame:
