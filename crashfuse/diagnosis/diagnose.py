@@ -521,9 +521,9 @@ def _shrink(campaign, case, preds, fits, config, fold_models, n_samples, surroga
                                                                       surrogate, label)]
             alone = []
         else:  # its folds in the pool of the residual's: no process idles between the two sets of folds
-            say(f"diagnose: GMM-GPR alone (leave-one-test-out), {n_jobs} jobs")
-            alone = [delayed(_alone_fold)(campaign, t, quick) for t in case.test_ids]
-        say(f"diagnose: CAE + effects + GMM-GPR residual (leave-one-test-out), {n_jobs} jobs")
+            alone = [delayed(_gmm_gpr_fold)(campaign, t, quick) for t in case.test_ids]
+        say(f"diagnose: {'GMM-GPR alone and ' if alone else ''}CAE + effects + GMM-GPR residual "
+            f"(leave-one-test-out), {n_jobs} jobs")
         folds = Parallel(n_jobs=n_jobs)(alone + [delayed(_effects_fold)(campaign, case, fits, i, quick)
                                                  for i in range(len(case.test_ids))])
         for j, iso in enumerate(folds):
@@ -560,20 +560,17 @@ def _model_fold(campaign, model, test_id, n_samples, surrogate, label) -> list[d
     return _relabel(pd.DataFrame(iso), label, "GMM-GPR")
 
 
-def _alone_fold(campaign, test_id, quick) -> pd.DataFrame:
-    """ISO table of the GMM-GPR fold holding out ``test_id`` (the campaign's own CAE runs)."""
+def _gmm_gpr_fold(campaign, test_id, quick) -> pd.DataFrame:
+    """ISO table of the GMM-GPR fold holding out ``test_id`` on ``campaign`` (one process: a pool's task)."""
     from crashfuse.evaluation.loto import evaluate
 
     return evaluate(campaign, holdout=[test_id], n_jobs=1, **quick).iso_table
 
 
 def _effects_fold(campaign, case, fits, fold, quick) -> pd.DataFrame:
-    """ISO table of the GMM-GPR fold holding out test ``fold`` on the campaign whose CAE runs are CAE + effects
-    (that fold's effect fit)."""
-    from crashfuse.evaluation.loto import evaluate
-
-    mod = _effects_campaign(campaign, case, fits, fold)
-    return evaluate(mod, holdout=[case.test_ids[fold]], n_jobs=1, **quick).iso_table
+    """:func:`_gmm_gpr_fold` holding out test ``fold`` on the campaign whose CAE runs are CAE + effects (that
+    fold's effect fit)."""
+    return _gmm_gpr_fold(_effects_campaign(campaign, case, fits, fold), case.test_ids[fold], quick)
 
 
 def _relabel(iso: pd.DataFrame, label: str, name: str) -> list[dict]:
